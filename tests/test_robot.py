@@ -1,0 +1,98 @@
+"""Robot model: URDF loading, forward kinematics against yourdfpy, and bad-input errors."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+import yourdfpy
+
+from larc_jax import LarcInputError
+from larc_jax.robot import JointType, forward_kinematics, forward_kinematics_np, load_robot
+
+
+def test_piper_structure(robot):
+    assert robot.active_joint_names == tuple(f"joint{i}" for i in range(1, 7))
+    assert robot.link_names[0] == "base_link"
+    assert set(robot.link_names) == {"base_link"} | {f"link{i}" for i in range(1, 9)}
+    assert all(robot.parent[i] < i for i in range(1, robot.n_links))
+    # The fingers branch off link6 and are held (not active).
+    for finger in ("link7", "link8"):
+        i = robot.link_names.index(finger)
+        assert robot.q_index[i] == -1 and robot.joint_type[i] == JointType.PRISMATIC
+        assert robot.link_names[robot.parent[i]] == "link6"
+    np.testing.assert_allclose(robot.q_lower, [-2.618, 0, -2.967, -1.832, -1.22, -3.14])
+    np.testing.assert_allclose(robot.q_upper, [2.618, 3.14, 0, 1.832, 1.22, 3.14])
+
+
+def test_fk_matches_yourdfpy_1000_configs(robot):
+    """JAX FK (float64) and the NumPy reference agree with yourdfpy to 1e-9 m for every link."""
+    model = yourdfpy.URDF.load(robot.urdf_path, load_meshes=False, build_collision_scene_graph=False,
+                               load_collision_meshes=False)
+    rng = np.random.default_rng(1)
+    Q = rng.uniform(robot.q_lower, robot.q_upper, size=(1000, robot.n_joints))
+    with jax.enable_x64(True):
+        T_jax = np.asarray(jax.jit(jax.vmap(forward_kinematics, in_axes=(None, 0)))(robot, Q))
+    assert T_jax.dtype == np.float64
+    worst = 0.0
+    for k, q in enumerate(Q):
+        model.update_cfg(np.concatenate([q, [0.0, 0.0]]))
+        T_np = forward_kinematics_np(robot, q)
+        for i, link in enumerate(robot.link_names):
+            T_ref = model.get_transform(link)
+            worst = max(worst, np.abs(T_ref - T_jax[k, i]).max(), np.abs(T_ref - T_np[i]).max())
+    assert worst < 1e-9, worst
+
+
+def test_fk_float32_is_close(robot):
+    q = np.array([0.3, 1.0, -1.2, 0.4, -0.5, 2.0])
+    T32 = np.asarray(forward_kinematics(robot, q.astype(np.float32)))  # x64 off: float32 path
+    assert T32.dtype == np.float32
+    np.testing.assert_allclose(T32, forward_kinematics_np(robot, q), atol=1e-5)
+
+
+def _copy_description(piper_dir: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "piper_description"
+    shutil.copytree(piper_dir, dst)
+    return dst / "urdf" / "piper_description.urdf"
+
+
+def test_missing_mesh_is_named(piper_dir, tmp_path):
+    urdf = _copy_description(piper_dir, tmp_path)
+    (urdf.parent.parent / "meshes" / "link3.STL").unlink()
+    with pytest.raises(LarcInputError, match=r"link 'link3'.*link3\.STL.*does not exist"):
+        load_robot(urdf)
+
+
+def test_joint_without_limits_is_named(piper_dir, tmp_path):
+    urdf = _copy_description(piper_dir, tmp_path)
+    text = urdf.read_text()
+    start = text.index('name="joint3"')
+    lim = text.index("<limit", start)
+    end = text.index("/>", lim) + 2
+    urdf.write_text(text[:lim] + text[end:])
+    with pytest.raises(LarcInputError, match=r"joint 'joint3'.*no <limit"):
+        load_robot(urdf)
+
+
+def test_not_a_serial_chain(robot):
+    with pytest.raises(LarcInputError, match="not a serial chain"):
+        load_robot(robot.urdf_path, active_joints=["joint1", "joint7", "joint8"])
+
+
+def test_unknown_joint_and_missing_file(robot, tmp_path):
+    with pytest.raises(LarcInputError, match="no joint named 'elbow'"):
+        load_robot(robot.urdf_path, active_joints=["joint1", "elbow"])
+    with pytest.raises(LarcInputError, match="does not exist"):
+        load_robot(tmp_path / "nothing.urdf")
+
+
+def test_env_var_resolution(monkeypatch, tmp_path):
+    from larc_jax.robot import piper_description_dir
+
+    monkeypatch.setenv("LARC_PIPER_DESCRIPTION", str(tmp_path))
+    with pytest.raises(LarcInputError, match="LARC_PIPER_DESCRIPTION"):
+        piper_description_dir()
