@@ -69,8 +69,9 @@ DEFAULT_MARGIN_M = 0.01
 DEFAULT_MAX_DEPTH = 9
 DEFAULT_COARSE_DEPTH = 4
 GUARD_ULPS = {np.dtype(np.float64): 256, np.dtype(np.float32): 4096}
-BUCKETS = (64, 256, 1024, 4096)
-"""Frontier arrays are padded to one of these sizes; larger frontiers run in 4096-chunks."""
+BUCKETS = (64, 128, 256, 512, 1024, 2048, 4096)
+"""Frontier arrays are padded to the next of these sizes (at most 2x waste, 7 compiled shapes);
+larger frontiers run in 4096-chunks."""
 
 
 class Method(str, enum.Enum):
@@ -253,6 +254,9 @@ def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, traj
     return jax.vmap(one)(traj, scene, a, b)
 
 
+_build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
+
+
 def _cast(tree, dtype):
     return jax.tree.map(
         lambda x: np.asarray(x, dtype) if np.issubdtype(np.asarray(x).dtype, np.floating) else x, tree
@@ -334,7 +338,7 @@ def _prepare(trajectories, scenes, robot, capsules, margin, dtype) -> _Batch:
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
     lo, hi, mask = pad_scenes(scene_list)
     with jax.enable_x64(dtype == np.float64):
-        splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))(
+        splines = _build_splines(
             np.stack([p[0] for p in padded]).astype(dtype),
             np.stack([p[1] for p in padded]).astype(dtype),
             np.stack([p[2] for p in padded]).astype(dtype),

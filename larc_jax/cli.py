@@ -68,6 +68,85 @@ def _cmd_fit_capsules(args) -> int:
     return EXIT_OK
 
 
+def _load_model(args):
+    """Robot + capsules: ``--robot FILE`` (a capsule file with a ``urdf`` field) or PIPER."""
+    import yaml
+
+    from .capsules import default_capsule_path, load_capsules
+    from .robot import load_robot
+
+    if args.robot:
+        path = Path(args.robot)
+        try:
+            doc = yaml.safe_load(path.read_text())
+        except FileNotFoundError:
+            raise LarcInputError(f"{path}: robot file does not exist") from None
+        except yaml.YAMLError as exc:
+            raise LarcInputError(f"{path}: not valid YAML ({exc})".replace("\n", " ")) from None
+        if not isinstance(doc, dict) or "urdf" not in doc:
+            raise LarcInputError(f"{path}: missing field 'urdf' (write it with `larc fit-capsules URDF -o FILE`)")
+        urdf = Path(doc["urdf"])
+        if not urdf.is_absolute():
+            urdf = path.parent / urdf
+        robot = load_robot(urdf, doc.get("package_dirs"), active_joints=doc.get("active_joints"),
+                           held_joint_values=doc.get("held_joints"))
+        return robot, load_capsules(path, robot)
+    robot = load_robot()
+    return robot, load_capsules(default_capsule_path(), robot)
+
+
+def _fmt_clearance(g: float) -> str:
+    if g != g:
+        return "nan"
+    if g == float("inf"):
+        return "inf (no boxes)"
+    return f"{g * 1000:+.2f} mm"
+
+
+def _cmd_certify(args) -> int:
+    import json
+    import math
+
+    from .certify import certify
+    from .io import atomic_write_text
+    from .scene import read_scene
+    from .trajectory import read_trajectory
+
+    robot, capsules = _load_model(args)
+    scene = read_scene(args.scene, frame=robot.link_names[0])
+    trajectories = [read_trajectory(p, robot) for p in args.trajectories]
+    result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
+                     max_depth=args.max_depth)
+    if not args.quiet:
+        print(f"{'trajectory':<28} {'status':<12} {'evals':>6} {'min clearance':>15}  blocked by")
+        for r in result:
+            bad = r.first_inconclusive
+            blocked = (f"t=[{bad.t0:.4f}, {bad.t1:.4f}] s  {bad.capsule} / {bad.box}" if bad else "")
+            print(f"{r.id:<28} {'CERTIFIED' if r.certified else 'UNCERTIFIED':<12} {r.evaluations:>6} "
+                  f"{_fmt_clearance(r.min_clearance_m):>15}  {blocked}")
+    if args.json:
+        def num(x):
+            return x if math.isfinite(x) else None
+
+        doc = {
+            "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
+            "scene": str(args.scene),
+            "frontier_sizes": list(result.frontier_sizes),
+            "trajectories": [
+                {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
+                 "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
+                 "first_inconclusive": (
+                     {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
+                      "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,
+                      "clearance_m": num(r.first_inconclusive.clearance_m)}
+                     if r.first_inconclusive else None)}
+                for r in result
+            ],
+        }
+        atomic_write_text(args.json, json.dumps(doc, indent=2) + "\n")
+    return EXIT_OK if all(r.certified for r in result) else EXIT_UNCERTIFIED
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="larc", description=__doc__.splitlines()[0])
     p.add_argument("--quiet", "-q", action="store_true", help="no progress output")
@@ -90,6 +169,19 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--no-urdf-field", action="store_true",
                    help="do not record the URDF path in the file (e.g. for PIPER, found via env)")
     f.set_defaults(func=_cmd_fit_capsules)
+
+    c = sub.add_parser("certify", help="certify trajectories against a scene",
+                       description="Exit status: 0 all certified, 1 some not certified, 2 bad input.")
+    c.add_argument("trajectories", nargs="+", metavar="TRAJ_FILE",
+                   help="JointTrajectory YAML/JSON files (joint_names, points with positions, "
+                        "velocities, time_from_start)")
+    c.add_argument("--scene", required=True, help="scene YAML: {frame, boxes: [{name, min, max}]}")
+    c.add_argument("--method", default="larc", choices=["larc", "fine", "coarse", "reference"])
+    c.add_argument("--margin", type=float, default=0.01, help="clearance margin rho, m (default 0.01)")
+    c.add_argument("--max-depth", type=int, default=9, help="maximum bisection depth (default 9)")
+    c.add_argument("--robot", help="robot file from `larc fit-capsules` (default: PIPER)")
+    c.add_argument("--json", metavar="OUT.json", help="write per-trajectory results as JSON")
+    c.set_defaults(func=_cmd_certify)
     return p
 
 
@@ -100,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else (logging.WARNING if args.quiet else logging.INFO),
         format="%(levelname)s %(name)s: %(message)s",
     )
+    logging.getLogger("jax").setLevel(logging.WARNING)  # backend probing noise
     try:
         return args.func(args)
     except LarcInputError as exc:
