@@ -1,0 +1,367 @@
+"""Mesh collision model of the robot with python-fcl (the audit / MoveIt-style checker).
+
+This is the *reference* checker of the experiments: it uses the official collision meshes of the
+URDF (not the capsule enclosures that LARC certifies with), as MoveIt's FCL plugin does.
+
+* Every ``<collision>`` element of every link becomes one ``fcl.CollisionObject`` (a BVH of the
+  mesh triangles in the link frame, or an FCL primitive for box/cylinder/sphere), with the
+  collision origin applied. The objects are built once per process (~0.5 s) and re-placed with
+  ``setTransform`` from :func:`larc_jax.robot.forward_kinematics_np` for each state.
+* Scene boxes are solid ``fcl.Box`` objects at their centres; meshes are surfaces. A mesh that
+  touches or lies inside a box collides; a box entirely inside a (hollow) mesh does not — the
+  same semantics as MoveIt/FCL.
+* Self-collision is checked for every pair of links with geometry that is not an allowed pair
+  (see :mod:`experiments.self_collision`).
+
+Scenes are YAML files ``{frame: base_link, boxes: [{name, min: [x,y,z], max: [x,y,z]}]}`` in the
+robot base frame, metres; :func:`load_scene_boxes` reads them.
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import yaml
+
+__all__ = [
+    "CollisionModel",
+    "SceneBoxes",
+    "load_scene_boxes",
+    "scene_boxes",
+    "normalise_pairs",
+]
+
+
+# ----------------------------------------------------------------------------------------------
+# Scenes
+# ----------------------------------------------------------------------------------------------
+
+
+def load_scene_boxes(path: str | Path) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """Read a scene YAML file → ``(names, lo (B, 3), hi (B, 3))`` in the base frame, metres.
+
+    An empty or missing ``boxes`` list gives B = 0. Raises ``ValueError`` naming the file and
+    the box for malformed entries.
+    """
+    path = Path(path)
+    doc = yaml.safe_load(path.read_text())
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a mapping with 'frame' and 'boxes'")
+    frame = doc.get("frame", "base_link")
+    if frame != "base_link":
+        raise ValueError(f"{path}: frame '{frame}' is not base_link")
+    boxes = doc.get("boxes") or []
+    names, lo, hi = [], [], []
+    for k, b in enumerate(boxes):
+        try:
+            a = np.asarray(b["min"], dtype=np.float64)
+            c = np.asarray(b["max"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{path}: boxes[{k}] needs numeric 'min' and 'max' lists") from None
+        if a.shape != (3,) or c.shape != (3,) or not (np.isfinite(a).all() and np.isfinite(c).all()):
+            raise ValueError(f"{path}: boxes[{k}] min/max must be 3 finite numbers")
+        if (a > c).any():
+            raise ValueError(f"{path}: boxes[{k}] has min > max")
+        names.append(str(b.get("name", f"box{k}")))
+        lo.append(a)
+        hi.append(c)
+    return tuple(names), np.array(lo).reshape(-1, 3), np.array(hi).reshape(-1, 3)
+
+
+class SceneBoxes:
+    """FCL objects of a set of axis-aligned boxes (built once, reused for every state)."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, names: Sequence[str] | None = None):
+        import fcl
+
+        self.lo = np.asarray(lo, dtype=np.float64).reshape(-1, 3)
+        self.hi = np.asarray(hi, dtype=np.float64).reshape(-1, 3)
+        if self.lo.shape != self.hi.shape:
+            raise ValueError("box lo/hi shapes differ")
+        self.names = tuple(names) if names is not None else tuple(f"box{k}" for k in range(len(self.lo)))
+        self.objects = []
+        for a, b in zip(self.lo, self.hi):
+            size = np.maximum(b - a, 0.0)
+            self.objects.append(
+                fcl.CollisionObject(fcl.Box(*size), fcl.Transform(np.eye(3), (a + b) / 2.0))
+            )
+
+    def __len__(self) -> int:
+        return len(self.objects)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "SceneBoxes":
+        names, lo, hi = load_scene_boxes(path)
+        return cls(lo, hi, names)
+
+
+def scene_boxes(boxes) -> SceneBoxes:
+    """Coerce ``boxes`` (a :class:`SceneBoxes`, a scene path, or a ``(lo, hi)`` / ``(names, lo,
+    hi)`` tuple) into a :class:`SceneBoxes`."""
+    if isinstance(boxes, SceneBoxes):
+        return boxes
+    if boxes is None:
+        return SceneBoxes(np.zeros((0, 3)), np.zeros((0, 3)))
+    if isinstance(boxes, (str, Path)):
+        return SceneBoxes.from_file(boxes)
+    if isinstance(boxes, tuple) and len(boxes) == 3:
+        return SceneBoxes(boxes[1], boxes[2], boxes[0])
+    if isinstance(boxes, tuple) and len(boxes) == 2:
+        return SceneBoxes(boxes[0], boxes[1])
+    raise TypeError(f"cannot interpret {type(boxes).__name__} as scene boxes")
+
+
+def normalise_pairs(pairs: Iterable) -> frozenset:
+    """Allowed pairs as a frozenset of sorted name 2-tuples (accepts tuples, lists, frozensets,
+    or ``{a:, b:}`` mappings)."""
+    out = set()
+    for p in pairs:
+        if isinstance(p, dict):
+            a, b = p["a"], p["b"]
+        else:
+            a, b = tuple(p)
+        out.add(tuple(sorted((str(a), str(b)))))
+    return frozenset(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# Robot model
+# ----------------------------------------------------------------------------------------------
+
+
+def _link_geometries(robot, link: str, model=None):
+    """(geometry, T_link_geometry, trimesh or None) for each collision element of ``link``."""
+    import fcl
+    import trimesh
+
+    from larc_jax.robot import _package_dirs_for, _resolve_uri, load_urdf_model
+
+    if model is None:
+        model = load_urdf_model(robot.urdf_path, dict(robot.package_dirs))
+    dirs = _package_dirs_for(Path(robot.urdf_path), dict(robot.package_dirs))
+    out = []
+    for col in model.link_map[link].collisions:
+        origin = np.asarray(col.origin if col.origin is not None else np.eye(4), dtype=np.float64)
+        g = col.geometry
+        if g.mesh is not None:
+            path = _resolve_uri(g.mesh.filename, Path(robot.urdf_path), dirs)
+            mesh = trimesh.load(str(path), force="mesh")
+            scale = np.asarray(g.mesh.scale if g.mesh.scale is not None else 1.0, dtype=np.float64)
+            verts = np.asarray(mesh.vertices, dtype=np.float64) * scale
+            faces = np.asarray(mesh.faces, dtype=np.int32)
+            bvh = fcl.BVHModel()
+            bvh.beginModel(len(verts), len(faces))
+            bvh.addSubModel(verts, faces)
+            bvh.endModel()
+            out.append((bvh, origin, trimesh.Trimesh(verts, faces, process=False)))
+        elif g.box is not None:
+            out.append((fcl.Box(*np.asarray(g.box.size, float)), origin, None))
+        elif g.cylinder is not None:
+            out.append((fcl.Cylinder(float(g.cylinder.radius), float(g.cylinder.length)), origin, None))
+        elif g.sphere is not None:
+            out.append((fcl.Sphere(float(g.sphere.radius)), origin, None))
+        else:
+            raise ValueError(f"{robot.urdf_path}: link '{link}' has an unsupported collision geometry")
+    return out
+
+
+class CollisionModel:
+    """FCL collision model of a robot's official collision geometry.
+
+    Build once per process (FCL objects cannot be pickled); every query re-places the same
+    objects. Not thread-safe.
+    """
+
+    def __init__(self, robot=None):
+        import fcl
+
+        from larc_jax.robot import load_robot, load_urdf_model
+
+        self._fcl = fcl
+        self.robot = robot if robot is not None else load_robot()
+        model = load_urdf_model(self.robot.urdf_path, dict(self.robot.package_dirs))
+        self.link_names = tuple(self.robot.link_names)
+        self.objects = []  # fcl.CollisionObject per collision element
+        self.object_link = []  # link index of each object
+        self.object_origin = []  # T_link_geometry of each object
+        self.meshes = {}  # link name -> list of trimesh (link frame) for drawing / tests
+        for li, link in enumerate(self.link_names):
+            for geom, origin, mesh in _link_geometries(self.robot, link, model):
+                self.objects.append(fcl.CollisionObject(geom, fcl.Transform()))
+                self.object_link.append(li)
+                self.object_origin.append(origin)
+                if mesh is not None:
+                    self.meshes.setdefault(link, []).append(mesh.copy().apply_transform(origin))
+        self.object_link = np.asarray(self.object_link, dtype=int)
+        self.object_origin = np.asarray(self.object_origin, dtype=np.float64).reshape(-1, 4, 4)
+        self.links_with_geometry = tuple(
+            sorted({self.link_names[i] for i in self.object_link}, key=self.link_names.index)
+        )
+        self._request = fcl.CollisionRequest()
+        self._self_pairs_cache: dict[frozenset, list[tuple[int, int]]] = {}
+        self._last_allowed: tuple = (object(), [])
+        self._q = None
+
+    # -- placement ------------------------------------------------------------------------------
+
+    def set_configuration(self, q) -> np.ndarray:
+        """Place every collision object at configuration ``q`` (n,); returns the link poses."""
+        fcl = self._fcl
+        q = np.asarray(q, dtype=np.float64)
+        from larc_jax.robot import forward_kinematics_np
+
+        T_link = forward_kinematics_np(self.robot, q)
+        T = T_link[self.object_link] @ self.object_origin
+        for obj, Tk in zip(self.objects, T):
+            obj.setTransform(fcl.Transform(Tk[:3, :3], Tk[:3, 3]))
+        self._q = q
+        return T_link
+
+    def _collide(self, o1, o2) -> bool:
+        res = self._fcl.CollisionResult()
+        return self._fcl.collide(o1, o2, self._request, res) > 0
+
+    # -- queries (at the configuration last set) ----------------------------------------------
+
+    def _scene_hits(self, boxes: SceneBoxes, first_only: bool = True) -> list[tuple[str, str]]:
+        hits = []
+        for k, obj in enumerate(self.objects):
+            for b, box in enumerate(boxes.objects):
+                if self._collide(obj, box):
+                    hits.append((self.link_names[self.object_link[k]], boxes.names[b]))
+                    if first_only:
+                        return hits
+        return hits
+
+    def _pairs_to_check(self, allowed_pairs) -> list[tuple[int, int]]:
+        if allowed_pairs is self._last_allowed[0]:
+            return self._last_allowed[1]
+        key = normalise_pairs(allowed_pairs or ())
+        pairs = self._self_pairs_cache.get(key)
+        if pairs is None:
+            pairs = []
+            for i, j in itertools.combinations(range(len(self.objects)), 2):
+                a, b = self.link_names[self.object_link[i]], self.link_names[self.object_link[j]]
+                if a == b or tuple(sorted((a, b))) in key:
+                    continue
+                pairs.append((i, j))
+            self._self_pairs_cache[key] = pairs
+        if isinstance(allowed_pairs, (frozenset, tuple)):  # immutable: safe to memoise by identity
+            self._last_allowed = (allowed_pairs, pairs)
+        return pairs
+
+    def _self_hits(self, allowed_pairs, first_only: bool = True) -> list[tuple[str, str]]:
+        hits = []
+        for i, j in self._pairs_to_check(allowed_pairs):
+            if self._collide(self.objects[i], self.objects[j]):
+                hits.append((self.link_names[self.object_link[i]], self.link_names[self.object_link[j]]))
+                if first_only:
+                    return hits
+        return hits
+
+    # -- public API ---------------------------------------------------------------------------
+
+    def scene_collision(self, q, boxes) -> bool:
+        """True if any link's collision geometry intersects any scene box at ``q``."""
+        boxes = scene_boxes(boxes)
+        if len(boxes) == 0:
+            return False
+        self.set_configuration(q)
+        return bool(self._scene_hits(boxes))
+
+    def scene_contacts(self, q, boxes) -> list[tuple[str, str]]:
+        """All (link, box) pairs in contact at ``q``."""
+        boxes = scene_boxes(boxes)
+        self.set_configuration(q)
+        return self._scene_hits(boxes, first_only=False)
+
+    def self_collision(self, q, allowed_pairs=()) -> bool:
+        """True if any pair of links not in ``allowed_pairs`` intersects at ``q``."""
+        self.set_configuration(q)
+        return bool(self._self_hits(allowed_pairs))
+
+    def self_contacts(self, q, allowed_pairs=()) -> list[tuple[str, str]]:
+        """All link pairs (not allowed) in contact at ``q``."""
+        self.set_configuration(q)
+        return self._self_hits(allowed_pairs, first_only=False)
+
+    def link_pair_contacts(self, q, pairs: Sequence[tuple[int, int]]) -> np.ndarray:
+        """(len(pairs),) bool: contact of each (link index, link index) pair at ``q``."""
+        self.set_configuration(q)
+        by_link: dict[int, list[int]] = {}
+        for k, li in enumerate(self.object_link):
+            by_link.setdefault(int(li), []).append(k)
+        out = np.zeros(len(pairs), dtype=bool)
+        for p, (a, b) in enumerate(pairs):
+            out[p] = any(
+                self._collide(self.objects[i], self.objects[j])
+                for i in by_link.get(a, ()) for j in by_link.get(b, ())
+            )
+        return out
+
+    def state_valid(self, q, boxes, allowed_pairs=()) -> bool:
+        """No scene collision and no disallowed self-collision at ``q`` (MoveIt's validity)."""
+        boxes = scene_boxes(boxes)
+        self.set_configuration(q)
+        if len(boxes) and self._scene_hits(boxes):
+            return False
+        return not self._self_hits(allowed_pairs)
+
+    def min_distance(self, q, boxes) -> float:
+        """Smallest FCL distance between any link geometry and any box at ``q`` (m; <= 0 in
+        contact; +inf without boxes)."""
+        fcl = self._fcl
+        boxes = scene_boxes(boxes)
+        self.set_configuration(q)
+        best = np.inf
+        req = fcl.DistanceRequest()
+        for obj in self.objects:
+            for box in boxes.objects:
+                res = fcl.DistanceResult()
+                d = fcl.distance(obj, box, req, res)
+                best = min(best, float(d))
+        return best
+
+    def states_in_collision(self, Q, boxes, allowed_pairs=None) -> np.ndarray:
+        """(N,) bool: scene collision of each row of ``Q`` (N, n); with ``allowed_pairs`` given
+        (not None), disallowed self-collision counts too."""
+        boxes = scene_boxes(boxes)
+        Q = np.asarray(Q, dtype=np.float64).reshape(-1, self.robot.n_joints)
+        out = np.zeros(len(Q), dtype=bool)
+        for k, q in enumerate(Q):
+            self.set_configuration(q)
+            hit = bool(len(boxes)) and bool(self._scene_hits(boxes))
+            if not hit and allowed_pairs is not None:
+                hit = bool(self._self_hits(allowed_pairs))
+            out[k] = hit
+        return out
+
+    def scene_and_self(self, Q, boxes, allowed_pairs=()) -> tuple[np.ndarray, np.ndarray]:
+        """Per state of ``Q`` (N, n): (scene collision (N,), disallowed self-collision (N,))."""
+        boxes = scene_boxes(boxes)
+        Q = np.asarray(Q, dtype=np.float64).reshape(-1, self.robot.n_joints)
+        scene = np.zeros(len(Q), dtype=bool)
+        selfc = np.zeros(len(Q), dtype=bool)
+        for k, q in enumerate(Q):
+            self.set_configuration(q)
+            scene[k] = bool(len(boxes)) and bool(self._scene_hits(boxes))
+            selfc[k] = bool(self._self_hits(allowed_pairs))
+        return scene, selfc
+
+    def world_meshes(self, q) -> dict:
+        """Link name → trimesh of its collision mesh(es) in the base frame at ``q`` (drawing)."""
+        import trimesh
+
+        from larc_jax.robot import forward_kinematics_np
+
+        T = forward_kinematics_np(self.robot, np.asarray(q, dtype=np.float64))
+        out = {}
+        for link, meshes in self.meshes.items():
+            m = trimesh.util.concatenate([mm.copy() for mm in meshes])
+            out[link] = m.apply_transform(T[self.link_names.index(link)])
+        return out
