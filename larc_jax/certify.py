@@ -47,7 +47,7 @@ from .capsules import CapsuleModel, capsule_segments, capsule_segments_np
 from .errors import LarcInputError
 from .geometry import segment_box_distance, segment_box_distance_np
 from .hermite import HermiteSpline, evaluate, evaluate_np, pad_waypoints, speed_max, speed_max_np
-from .robot import Robot
+from .robot import JointType, Robot
 from .scene import Scene, pad_scenes
 from .trajectory import Trajectory, validate_trajectory
 
@@ -307,10 +307,10 @@ class _Batch:
             size = next(s for s in BUCKETS if s >= stop - start)
             pad = size - (stop - start)
             sl = slice(start, stop)
-            tr = np.concatenate([traj[sl], np.zeros(pad, np.int64)])
-            aa = np.concatenate([a[sl], np.repeat(a[sl][:1], pad)]).astype(self.dtype)
-            bb = np.concatenate([b[sl], np.repeat(b[sl][:1], pad)]).astype(self.dtype)
-            tr = np.where(np.arange(size) < stop - start, tr, traj[start])
+            # Padding repeats the chunk's first interval; its results are dropped below.
+            tr = np.concatenate([traj[sl], np.repeat(traj[start], pad)])
+            aa = np.concatenate([a[sl], np.repeat(a[start], pad)]).astype(self.dtype)
+            bb = np.concatenate([b[sl], np.repeat(b[start], pad)]).astype(self.dtype)
             with jax.enable_x64(self.dtype == np.float64):
                 out = _evaluate_intervals(
                     self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
@@ -323,10 +323,18 @@ class _Batch:
         return a, b, g, cap, box
 
 
-def _scene_scale(scenes: Sequence[Scene], capsules: CapsuleModel) -> float:
+def _scene_scale(scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel) -> float:
+    """Bound on every coordinate magnitude (m) in the clearance: box corners, and any capsule
+    point (sum of joint-origin offsets, held/active prismatic travel, farthest capsule point)."""
     corners = [np.abs(s.lo).max() for s in scenes if s.n_boxes] + [np.abs(s.hi).max() for s in scenes if s.n_boxes]
-    reach = float(np.asarray(capsules.motion_a).max(initial=0.0) + np.asarray(capsules.radius).max())
-    return float(max(corners, default=0.0)) + reach
+    offsets = float(np.linalg.norm(np.asarray(robot.T_parent_joint)[:, :3, 3], axis=1).sum())
+    travel = float(np.abs(np.asarray(robot.q_held)).sum())
+    for k, jtype in zip(robot.q_index, robot.joint_type):
+        if k >= 0 and jtype == JointType.PRISMATIC:
+            travel += max(abs(float(robot.q_lower[k])), abs(float(robot.q_upper[k])))
+    ends = np.concatenate([np.asarray(capsules.p_link_a), np.asarray(capsules.p_link_b)])
+    far = float(np.linalg.norm(ends, axis=1).max() + np.asarray(capsules.radius).max())
+    return max(float(max(corners, default=0.0)), offsets + travel + far)
 
 
 def _prepare(trajectories, scenes, robot, capsules, margin, dtype) -> _Batch:
@@ -348,11 +356,11 @@ def _prepare(trajectories, scenes, robot, capsules, margin, dtype) -> _Batch:
         box_lo=lo.astype(dtype), box_hi=hi.astype(dtype), box_mask=mask, scene_of=scene_of,
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
         margin=np.asarray(margin, dtype), dtype=dtype,
-        guard=rounding_guard(dtype, _scene_scale(scene_list, capsules)),
+        guard=rounding_guard(dtype, _scene_scale(scene_list, robot, capsules)),
     )
 
 
-def _leaf_records(batch, capsules, scenes, traj, depth, index, a, b, g, cap, box, passed):
+def _leaf_records(capsules, scenes, traj, depth, index, a, b, g, cap, box, passed):
     out = []
     for i in range(len(traj)):
         s = scenes[traj[i]]
@@ -379,7 +387,7 @@ def _larc_batched(batch: _Batch, trajectories, scenes, capsules, max_depth, prog
         a, b, g, cap, box = batch.evaluate(traj, depth, index, progress)
         passed = g > batch.guard  # NaN compares False: never certifies
         final = passed | (d == max_depth)
-        for k, leaf in _leaf_records(batch, capsules, scenes, traj[final], depth[final], index[final],
+        for k, leaf in _leaf_records(capsules, scenes, traj[final], depth[final], index[final],
                                      a[final], b[final], g[final], cap[final], box[final], passed[final]):
             leaves[k].append(leaf)
         open_ = ~final
@@ -397,7 +405,7 @@ def _fixed(batch: _Batch, trajectories, scenes, capsules, depth_fixed, max_depth
     a, b, g, cap, box = batch.evaluate(traj, depth, index, progress)
     passed = g > batch.guard
     leaves: list[list[Leaf]] = [[] for _ in range(N)]
-    for k, leaf in _leaf_records(batch, capsules, scenes, traj, depth, index, a, b, g, cap, box, passed):
+    for k, leaf in _leaf_records(capsules, scenes, traj, depth, index, a, b, g, cap, box, passed):
         leaves[k].append(leaf)
     frontier = np.zeros((N, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
@@ -494,7 +502,7 @@ def certify(
     trajectories, scenes = _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth)
     start = time.perf_counter()
     if method == Method.REFERENCE:
-        guard = rounding_guard(np.float64, _scene_scale(scenes, capsules))
+        guard = rounding_guard(np.float64, _scene_scale(scenes, robot, capsules))
         frontier, leaves = _reference(trajectories, scenes, robot, capsules, margin, max_depth, guard, progress)
     else:
         batch = _prepare(trajectories, scenes, robot, capsules, margin, dtype)

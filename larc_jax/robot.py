@@ -246,8 +246,6 @@ def _resolve_uri(uri: str, urdf_path: Path, package_dirs: Mapping[str, str]) -> 
 def load_urdf_model(
     urdf_path: str | os.PathLike,
     package_dirs: Mapping[str, str] | None = None,
-    *,
-    load_meshes: bool = False,
 ):
     """Parse a URDF with yourdfpy, resolving ``package://`` URIs; checks every mesh file exists.
 
@@ -285,15 +283,6 @@ def load_urdf_model(
                         f"{urdf_path}: link '{link.name}' collision mesh '{mesh.filename}' "
                         f"resolves to {path}, which does not exist"
                     )
-    if load_meshes:
-        model = yourdfpy.URDF.load(
-            str(urdf_path),
-            filename_handler=handler,
-            build_scene_graph=True,
-            build_collision_scene_graph=True,
-            load_meshes=False,
-            load_collision_meshes=True,
-        )
     return model
 
 
