@@ -24,8 +24,8 @@ from .errors import LarcInputError
 from .geometry import segment_box_distance, segment_box_distances
 from .hermite import HermiteSpline, speed_max
 from .robot import JointType, Robot, forward_kinematics, load_robot
-from .scene import Scene, read_scene
-from .trajectory import Trajectory, read_trajectory, write_trajectory
+from .scene import Scene, read_moveit_scene, read_scene
+from .trajectory import Trajectory, finite_difference_velocities, read_trajectory, write_trajectory
 
 __version__ = "0.1.0"
 
@@ -35,5 +35,5 @@ __all__ = [
     "default_capsule_path", "fit_capsules", "forward_kinematics", "interval_clearance",
     "load_capsules", "load_robot", "motion_constants", "read_scene", "read_trajectory",
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
-    "write_trajectory",
+    "write_trajectory", "read_moveit_scene", "finite_difference_velocities",
 ]

@@ -13,13 +13,23 @@ Soundness chain (what this module proves):
    shifted to both ends of the joint's stroke. A prismatic stroke sweeps the element along a
    segment, and the convex hull of the two end copies contains that sweep, so the capsule holds
    the finger at *any* opening.
-3. **Motion constants** (paper eq. 6), see :func:`motion_constants`.
+3. **Held revolute joints** (e.g. a linkage gripper's knuckles, incl. mimic joints) are
+   enclosed at their held value only: the capsule file records the values (``held_joints``) and
+   loading it refuses a robot held elsewhere. (A rotation's sweep is not the hull of its ends.)
+4. **Motion constants** (paper eq. 6), see :func:`motion_constants`.
+
+Meshes are read with trimesh without processing (the vertices are exactly the file's), in any
+format it reads (STL, OBJ, PLY, GLB; DAE through pycollada); a COLLADA ``<unit meter="s"/>``
+scales the vertices by ``s`` (as ROS tools do), then the URDF ``scale`` applies. The parsed URDF
+and the meshes are cached (keyed on the file, its size and modification time).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import os
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -29,6 +39,7 @@ import numpy as np
 import yaml
 
 from .errors import LarcInputError
+from .io import parse_yaml, read_input_text, short_repr
 from .robot import JointType, Robot, forward_kinematics, forward_kinematics_np, load_urdf_model
 
 __all__ = [
@@ -155,6 +166,46 @@ def _primitive_vertices(geometry) -> np.ndarray | None:
     return None
 
 
+@functools.lru_cache(maxsize=8)
+def _model_cached(urdf_path: str, stamp: tuple, package_dirs: tuple):
+    return load_urdf_model(urdf_path, dict(package_dirs))
+
+
+def _file_stamp(path: str | Path) -> tuple:
+    st = os.stat(path)
+    return (str(path), st.st_size, st.st_mtime_ns)
+
+
+def _robot_model(robot: Robot):
+    """The parsed URDF of ``robot`` (cached; re-parsed if the file changed)."""
+    return _model_cached(robot.urdf_path, _file_stamp(robot.urdf_path), tuple(robot.package_dirs))
+
+
+@functools.lru_cache(maxsize=256)
+def _mesh_cached(stamp: tuple, link: str) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    path = stamp[0]
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001
+        raise LarcInputError(f"{path}: cannot read mesh of link '{link}' ({exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise LarcInputError(f"{path}: mesh of link '{link}' has no triangles")
+    v = np.array(mesh.vertices, dtype=np.float64)
+    if getattr(mesh, "units", None):
+        try:
+            v *= float(trimesh.units.unit_conversion(mesh.units, "meters"))
+        except Exception:  # noqa: BLE001
+            raise LarcInputError(f"{path}: mesh of link '{link}' has unknown units {mesh.units!r}") from None
+    if not np.isfinite(v).all():
+        raise LarcInputError(f"{path}: mesh of link '{link}' has non-finite vertices")
+    f = np.array(mesh.faces, dtype=np.int64)
+    v.flags.writeable = False
+    f.flags.writeable = False
+    return v, f
+
+
 def link_elements(robot: Robot, link: str) -> np.ndarray:
     """Collision elements of ``link`` in its own frame: (E, P, 3) vertex sets, float64.
 
@@ -162,28 +213,28 @@ def link_elements(robot: Robot, link: str) -> np.ndarray:
     (non-active) prismatic joint, every element also carries its copies shifted to both stroke
     ends (see module docstring), so P is tripled.
     """
-    import trimesh
+    from .robot import _resolve_uri  # same resolution as the loader
 
-    model = load_urdf_model(robot.urdf_path, dict(robot.package_dirs))
-    from .robot import _package_dirs_for, _resolve_uri  # same resolution as the loader
-
-    dirs = _package_dirs_for(Path(robot.urdf_path), dict(robot.package_dirs))
+    model = _robot_model(robot)
+    dirs = dict(robot.package_dirs)
+    i = robot.link_index(link)
     ulink = model.link_map[link]
     groups: list[np.ndarray] = []
     for col in ulink.collisions:
         origin = np.asarray(col.origin if col.origin is not None else np.eye(4), float)
         geom = col.geometry
+        if geom is None:
+            raise LarcInputError(f"{robot.urdf_path}: link '{link}' has a <collision> without geometry")
         if geom.mesh is not None:
             path = _resolve_uri(geom.mesh.filename, Path(robot.urdf_path), dirs)
-            try:
-                mesh = trimesh.load(str(path), force="mesh")
-            except Exception as exc:  # noqa: BLE001
-                raise LarcInputError(f"{path}: cannot read mesh of link '{link}' ({exc})") from None
-            if len(mesh.faces) == 0:
-                raise LarcInputError(f"{path}: mesh of link '{link}' has no triangles")
+            if not path.is_file():
+                raise LarcInputError(
+                    f"{robot.urdf_path}: link '{link}' collision mesh '{geom.mesh.filename}' "
+                    f"resolves to {path}, which does not exist"
+                )
+            v, faces = _mesh_cached(_file_stamp(path), link)
             scale = np.asarray(geom.mesh.scale if geom.mesh.scale is not None else 1.0, float)
-            v = np.asarray(mesh.vertices, float) * scale
-            elems = v[np.asarray(mesh.faces)]  # (F, 3, 3)
+            elems = (v * scale)[faces]  # (F, 3, 3)
         else:
             v = _primitive_vertices(geom)
             if v is None:
@@ -199,7 +250,6 @@ def link_elements(robot: Robot, link: str) -> np.ndarray:
     if not groups:
         return np.zeros((0, 3, 3))
     elems = np.concatenate(groups)
-    i = robot.link_index(link)
     if robot.q_index[i] < 0 and robot.joint_type[i] == JointType.PRISMATIC:
         lo, hi = _joint_limits(model, robot.joint_names[i])
         ax = np.asarray(robot.axis[i], float)
@@ -505,8 +555,13 @@ def motion_constants(
 
 
 def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[_Fitted], *,
-                  padding_m: float, urdf: str | None = None) -> None:
-    """Write the capsule file atomically."""
+                  padding_m: float, urdf: str | None = None,
+                  package_dirs: Mapping[str, str] | None = None) -> None:
+    """Write the capsule file atomically.
+
+    ``urdf`` and ``package_dirs`` (written only when ``urdf`` is given) let ``larc certify
+    --robot FILE`` rebuild the robot; relative paths there are relative to the file's folder.
+    """
     held = {
         robot.joint_names[i]: float(robot.q_held[i])
         for i in range(1, robot.n_links)
@@ -535,7 +590,8 @@ def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[_Fitted], *,
         ],
     }
     if urdf is not None:
-        doc = {"urdf": urdf, **doc}
+        extra = {"package_dirs": dict(package_dirs)} if package_dirs else {}
+        doc = {"urdf": urdf, **extra, **doc}
     from .io import atomic_write_text
 
     header = (
@@ -551,13 +607,28 @@ def _field(doc: Mapping, key: str, source: str, where: str = ""):
     return doc[key]
 
 
+_MAX_CAPSULE_M = 1e6
+"""Capsule coordinates and radii beyond this (m) are refused as implausible (squares overflow)."""
+
+
+def _number(value, source: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise LarcInputError(f"{source}: {where} must be a number, got {short_repr(value)}")
+    try:
+        return float(value)
+    except OverflowError:
+        raise LarcInputError(f"{source}: {where} is too large ({short_repr(value)})") from None
+
+
 def _vec3(value, source: str, where: str) -> np.ndarray:
     try:
         v = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LarcInputError(f"{source}: {where} is not a list of 3 numbers") from None
+    except (TypeError, ValueError, OverflowError):
+        raise LarcInputError(f"{source}: {where} is not a list of 3 numbers, got {short_repr(value)}") from None
     if v.shape != (3,) or not np.isfinite(v).all():
-        raise LarcInputError(f"{source}: {where} must be 3 finite numbers, got {value!r}")
+        raise LarcInputError(f"{source}: {where} must be 3 finite numbers, got {short_repr(value)}")
+    if np.abs(v).max() > _MAX_CAPSULE_M:
+        raise LarcInputError(f"{source}: {where} = {short_repr(value)} is beyond {_MAX_CAPSULE_M:g} m of its link frame")
     return v
 
 
@@ -569,33 +640,41 @@ def load_capsules(path: str | Path, robot: Robot, *, check_hash: bool = True) ->
     """
     path = Path(path)
     source = str(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise LarcInputError(f"{source}: capsule file does not exist") from None
-    except yaml.YAMLError as exc:
-        raise LarcInputError(f"{source}: not valid YAML ({exc})") from None
+    doc = parse_yaml(read_input_text(path, "capsule file"), source)
     if not isinstance(doc, dict):
         raise LarcInputError(f"{source}: expected a mapping with 'capsules'")
     if check_hash and _field(doc, "urdf_sha256", source) != robot.urdf_sha256:
         raise LarcInputError(
-            f"{source}: fitted to a URDF with sha256 {doc['urdf_sha256']}, but {robot.urdf_path} "
+            f"{source}: fitted to a URDF with sha256 {short_repr(doc['urdf_sha256'])}, but {robot.urdf_path} "
             f"has sha256 {robot.urdf_sha256}; refit with `larc fit-capsules {robot.urdf_path} -o {source}`"
         )
-    padding = float(_field(doc, "padding_m", source))
+    padding = _number(_field(doc, "padding_m", source), source, "padding_m")
     if not (np.isfinite(padding) and padding >= 0):
         raise LarcInputError(f"{source}: padding_m must be a finite number >= 0")
     active = doc.get("active_joints")
-    if active is not None and list(active) != list(robot.active_joint_names):
+    if active is not None and (not isinstance(active, list) or active != list(robot.active_joint_names)):
         raise LarcInputError(
-            f"{source}: active_joints {active} differ from the robot's {list(robot.active_joint_names)}"
+            f"{source}: active_joints {short_repr(active)} differ from the robot's {list(robot.active_joint_names)}"
         )
     held = doc.get("held_joints") or {}
+    if not isinstance(held, dict):
+        raise LarcInputError(f"{source}: held_joints must be a mapping JOINT: VALUE")
+    if "held_joints" in doc:
+        # The capsules of links on held joints are valid at the recorded values only: every
+        # joint the robot holds must be recorded (and equal, below).
+        for i in range(1, robot.n_links):
+            jname = robot.joint_names[i]
+            if robot.q_index[i] < 0 and robot.joint_type[i] != JointType.FIXED and jname not in held:
+                raise LarcInputError(
+                    f"{source}: held_joints does not record joint '{jname}', which the robot holds "
+                    f"at {float(robot.q_held[i])}"
+                )
     for jname, value in held.items():
         if jname not in robot.joint_names:
             raise LarcInputError(f"{source}: held_joints names unknown joint '{jname}'")
         i = robot.joint_names.index(jname)
-        if abs(float(robot.q_held[i]) - float(value)) > 1e-12:
+        value = _number(value, source, f"held_joints.{jname}")
+        if not abs(float(robot.q_held[i]) - value) <= 1e-12:
             raise LarcInputError(
                 f"{source}: held_joints.{jname} = {value} but the robot holds it at {float(robot.q_held[i])}"
             )
@@ -607,13 +686,19 @@ def load_capsules(path: str | Path, robot: Robot, *, check_hash: bool = True) ->
         where = f"capsules[{k}]"
         if not isinstance(e, dict):
             raise LarcInputError(f"{source}: {where} must be a mapping")
-        link = str(_field(e, "link", source, where + "."))
+        link = _field(e, "link", source, where + ".")
+        if not isinstance(link, str):
+            raise LarcInputError(f"{source}: {where}.link must be a link name, got {short_repr(link)}")
         if link not in robot.link_names:
             raise LarcInputError(f"{source}: {where}.link '{link}' is not a link of {robot.urdf_path}")
-        r = e.get("radius")
-        if not isinstance(r, (int, float)) or not np.isfinite(r) or r <= padding:
-            raise LarcInputError(f"{source}: {where}.radius must be a finite number > padding_m, got {r!r}")
-        names.append(str(e.get("name", f"{link}_{k}")))
+        r = _number(e.get("radius"), source, f"{where}.radius")
+        if not np.isfinite(r) or r <= padding or r > _MAX_CAPSULE_M:
+            raise LarcInputError(
+                f"{source}: {where}.radius must be a finite number > padding_m and <= {_MAX_CAPSULE_M:g} m, got {r!r}")
+        name = e.get("name", f"{link}_{k}")
+        if not isinstance(name, (str, int)) or isinstance(name, bool):
+            raise LarcInputError(f"{source}: {where}.name must be a string, got {short_repr(name)}")
+        names.append(str(name))
         links.append(link)
         idx.append(robot.link_names.index(link))
         A.append(_vec3(_field(e, "a", source, where + "."), source, where + ".a"))

@@ -69,9 +69,18 @@ DEFAULT_MARGIN_M = 0.01
 DEFAULT_MAX_DEPTH = 9
 DEFAULT_COARSE_DEPTH = 4
 GUARD_ULPS = {np.dtype(np.float64): 256, np.dtype(np.float32): 4096}
-BUCKETS = (64, 128, 256, 512, 1024, 2048, 4096)
-"""Frontier arrays are padded to the next of these sizes (at most 2x waste, 7 compiled shapes);
-larger frontiers run in 4096-chunks."""
+BUCKETS = tuple(2**k for k in range(2, 13))
+"""Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11
+compiled shapes); larger frontiers run in 4096-chunks. Small buckets matter when trajectories
+are certified one at a time: a call costs ~0.1 ms plus ~10 us per padded interval on a CPU core,
+so a 3-interval frontier padded to 64 would cost 5x what it needs."""
+
+
+def _size_class(n: int, minimum: int) -> int:
+    """Next power of two >= max(n, minimum): array sizes that vary between calls (waypoints,
+    trajectories, scenes) are rounded up to these so a process compiles a few shapes, not one
+    per distinct size (each compiled CPU executable also holds ~100 memory mappings)."""
+    return 1 << (max(int(n), int(minimum)) - 1).bit_length()
 
 
 class Method(str, enum.Enum):
@@ -339,12 +348,16 @@ def _scene_scale(scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel) 
 
 def _prepare(trajectories, scenes, robot, capsules, margin, dtype) -> _Batch:
     dtype = np.dtype(dtype)
-    n_knots = max(t.n_waypoints for t in trajectories)
+    # Shapes are rounded up to size classes (see _size_class); padded knots lie after t_K and
+    # are never touched by an interval inside the horizon (hermite.pad_waypoints), padded
+    # trajectories and scenes repeat the first one and are never indexed by an interval.
+    n_knots = _size_class(max(t.n_waypoints for t in trajectories), 16)
     padded = [pad_waypoints(t.t, t.q, t.qd, n_knots) for t in trajectories]
+    padded += padded[:1] * (_size_class(len(padded), 1) - len(padded))
     unique = list(dict.fromkeys(id(s) for s in scenes))
     scene_list = [next(s for s in scenes if id(s) == u) for u in unique]
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
-    lo, hi, mask = pad_scenes(scene_list)
+    lo, hi, mask = pad_scenes(scene_list + scene_list[:1] * (_size_class(len(scene_list), 1) - len(scene_list)))
     with jax.enable_x64(dtype == np.float64):
         splines = _build_splines(
             np.stack([p[0] for p in padded]).astype(dtype),

@@ -1,21 +1,148 @@
 """The ``larc`` command line.
 
-Exit status: 0 success / every trajectory certified, 1 some trajectory not certified,
-2 bad input (one line on stderr naming the file, field and index).
+Exit status: 0 success / every trajectory certified, 1 some trajectory not certified (``larc
+certify`` without ``--no-fail-on-uncertified``), 2 bad input or usage (one line on stderr naming
+the file, field and index), 3 internal error (a bug: traceback on stderr).
+
+Output: tables and results on stdout; log messages (loggers ``larc`` and ``larc_jax``), progress
+bars and errors on stderr. ``--quiet`` leaves only errors (and the files asked for); ``-v`` adds debug messages.
+Progress bars are shown when stderr is a terminal (``--progress`` / ``--no-progress`` force).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import logging
 import sys
+import traceback
+import warnings
 from pathlib import Path
 
 from .errors import LarcInputError
 
 log = logging.getLogger("larc")
 
-EXIT_OK, EXIT_UNCERTIFIED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_OK, EXIT_UNCERTIFIED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+
+
+class _LogFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage()
+        if record.exc_info:
+            msg += "\n" + self.formatException(record.exc_info)
+        if record.levelno >= logging.WARNING:
+            return f"larc: {record.levelname.lower()}: {msg}"
+        if record.levelno < logging.INFO:
+            return f"larc: debug [{record.name}]: {msg}"
+        return f"larc: {msg}"
+
+
+class _BarSafeHandler(logging.StreamHandler):
+    """Writes through ``tqdm.write``, which clears and redraws a progress bar being shown."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            from tqdm import tqdm
+
+            tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # noqa: BLE001 - logging must never raise
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def _logging_for(args):
+    """Route loggers ``larc`` (the command line) and ``larc_jax`` (the library modules), with
+    their children, to stderr at the level the flags ask for; restore the previous
+    configuration afterwards (``main`` may be called in-process, e.g. by tests)."""
+    quiet, verbose = getattr(args, "quiet", False), getattr(args, "verbose", False)
+    level = logging.ERROR if quiet else (logging.DEBUG if verbose else logging.INFO)
+    ours = [logging.getLogger(name) for name in ("larc", "larc_jax")]
+    jax_log = logging.getLogger("jax")
+    saved = [(lg.level, lg.propagate, list(lg.handlers)) for lg in ours], jax_log.level
+    handler = _BarSafeHandler(sys.stderr)
+    handler.setFormatter(_LogFormatter())
+    for lg in ours:
+        lg.handlers = [handler]
+        lg.setLevel(level)
+        lg.propagate = False
+    jax_log.setLevel(logging.ERROR if quiet else logging.WARNING)  # backend probing noise
+    try:
+        with warnings.catch_warnings():
+            if quiet:
+                warnings.simplefilter("ignore")
+            yield
+    finally:
+        for lg, (lvl, prop, handlers) in zip(ours, saved[0]):
+            lg.setLevel(lvl)
+            lg.propagate = prop
+            lg.handlers = handlers
+        jax_log.setLevel(saved[1])
+
+
+def _progress_bar(args, **kwargs):
+    """A tqdm bar on stderr: shown if ``--progress``, hidden if ``--quiet`` or ``--no-progress``,
+    else shown when stderr is a terminal (after half a second, so quick steps stay silent)."""
+    from tqdm import tqdm
+
+    forced = getattr(args, "progress", None)
+    show = not getattr(args, "quiet", False) and (forced if forced is not None else sys.stderr.isatty())
+    return tqdm(file=sys.stderr, disable=not show, delay=0.0 if forced else 0.5, leave=False,
+                dynamic_ncols=True, **kwargs)
+
+
+def _write_output(path, data: bytes, what: str) -> None:
+    """Write an output file atomically; a write failure is a usage error (exit 2)."""
+    from .io import atomic_write_bytes
+
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        raise LarcInputError(f"{path}: cannot write {what} ({exc.strerror or exc})") from None
+    log.info("wrote %s (%s)", path, what)
+
+
+_LEAF_FORMATS = {".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
+
+
+def _leaves_format(path: str) -> str:
+    """Output format of ``--leaves PATH`` from its suffix; checked before any work is done."""
+    fmt = _LEAF_FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        raise LarcInputError(f"--leaves {path}: unknown file type (use a .parquet or .csv name)")
+    if fmt == "parquet":
+        try:
+            import pyarrow  # noqa: F401
+        except ImportError:
+            raise LarcInputError(
+                f"--leaves {path}: writing Parquet needs pyarrow (pip install pyarrow); "
+                "or give a .csv file name"
+            ) from None
+    return fmt
+
+
+def _leaves_bytes(result, fmt: str) -> bytes:
+    df = result.leaves_dataframe()
+    if fmt == "csv":
+        return df.to_csv(index=False).encode("utf-8")  # floats as shortest round-trip repr
+    buf = io.BytesIO()
+    df.to_parquet(buf, index=False)
+    return buf.getvalue()
+
+
+def _read_trajectories(args, paths, robot):
+    """Read trajectory files (progress bar over the files)."""
+    from .trajectory import read_trajectory
+
+    kwargs = {"velocities": args.velocities} if getattr(args, "velocities", None) else {}
+    out = []
+    with _progress_bar(args, total=len(paths), desc="reading", unit=" files") as bar:
+        for p in paths:
+            out.append(read_trajectory(p, robot, **kwargs))
+            bar.update(1)
+    log.debug("read %d trajectory files", len(out))
+    return out
 
 
 def _package_dirs(items: list[str] | None) -> dict[str, str]:
@@ -50,18 +177,31 @@ def _cmd_fit_capsules(args) -> int:
         active_joints=args.joints.split(",") if args.joints else None,
         held_joint_values=held,
     )
-    fitted = fit_capsules(
-        robot, n_capsules=args.n_capsules, capsules_per_link=per_link, padding_m=args.padding,
-        progress=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
-    )
-    urdf_field = None if args.no_urdf_field else str(Path(args.urdf))
-    save_capsules(args.output, robot, fitted, padding_m=args.padding, urdf=urdf_field)
+    with _progress_bar(args, desc="fitting capsules", unit=" links") as bar:
+        def on_link(msg: str) -> None:
+            log.debug("%s", msg)
+            bar.set_postfix_str(msg.removeprefix("fitting "), refresh=False)
+            bar.update(1)
+
+        fitted = fit_capsules(
+            robot, n_capsules=args.n_capsules, capsules_per_link=per_link, padding_m=args.padding,
+            progress=on_link,
+        )
+    import os
+
+    out_dir = Path(args.output).resolve().parent  # the file's paths are relative to its folder
+    rel = lambda p: os.path.relpath(Path(p).expanduser().resolve(), out_dir)  # noqa: E731
+    urdf_field = None if args.no_urdf_field else rel(args.urdf)
+    save_capsules(args.output, robot, fitted, padding_m=args.padding, urdf=urdf_field,
+                  package_dirs={k: rel(v) for k, v in _package_dirs(args.package_dir).items()})
     caps = load_capsules(args.output, robot)
     checked = verify_containment(robot, caps, source=str(args.output))
     if not args.quiet:
-        print(f"{'capsule':<12} {'link':<10} {'radius_m':>9} {'vol_cm3':>8} {'hull_cm3':>8} {'ratio':>6}")
+        wc = max([12] + [len(f.name) for f in fitted])  # long link names keep the columns
+        wl = max([10] + [len(f.link) for f in fitted])
+        print(f"{'capsule':<{wc}} {'link':<{wl}} {'radius_m':>9} {'vol_cm3':>8} {'hull_cm3':>8} {'ratio':>6}")
         for f in fitted:
-            print(f"{f.name:<12} {f.link:<10} {f.radius:>9.6f} {f.volume_m3 * 1e6:>8.1f} "
+            print(f"{f.name:<{wc}} {f.link:<{wl}} {f.radius:>9.6f} {f.volume_m3 * 1e6:>8.1f} "
                   f"{f.hull_volume_m3 * 1e6:>8.1f} {f.volume_m3 / max(f.hull_volume_m3, 1e-30):>6.2f}")
         print(f"wrote {args.output}: {len(fitted)} capsules; containment proven for "
               f"{sum(checked.values())} mesh elements")
@@ -70,26 +210,37 @@ def _cmd_fit_capsules(args) -> int:
 
 def _load_model(args):
     """Robot + capsules: ``--robot FILE`` (a capsule file with a ``urdf`` field) or PIPER."""
-    import yaml
-
     from .capsules import default_capsule_path, load_capsules
     from .robot import load_robot
 
     if args.robot:
+        from .io import parse_yaml, read_input_text, short_repr
+
         path = Path(args.robot)
-        try:
-            doc = yaml.safe_load(path.read_text())
-        except FileNotFoundError:
-            raise LarcInputError(f"{path}: robot file does not exist") from None
-        except yaml.YAMLError as exc:
-            raise LarcInputError(f"{path}: not valid YAML ({exc})".replace("\n", " ")) from None
+        doc = parse_yaml(read_input_text(path, "robot file"), str(path))
+        if doc is None:
+            raise LarcInputError(f"{path}: robot file is empty")
         if not isinstance(doc, dict) or "urdf" not in doc:
             raise LarcInputError(f"{path}: missing field 'urdf' (write it with `larc fit-capsules URDF -o FILE`)")
+        if not isinstance(doc["urdf"], str) or not doc["urdf"]:
+            raise LarcInputError(f"{path}: urdf must be a file path, got {short_repr(doc['urdf'])}")
         urdf = Path(doc["urdf"])
         if not urdf.is_absolute():
             urdf = path.parent / urdf
-        robot = load_robot(urdf, doc.get("package_dirs"), active_joints=doc.get("active_joints"),
-                           held_joint_values=doc.get("held_joints"))
+        dirs = doc.get("package_dirs") or {}
+        if not isinstance(dirs, dict) or not all(isinstance(v, str) for v in dirs.values()):
+            raise LarcInputError(f"{path}: package_dirs must be a mapping NAME: FOLDER, got {short_repr(dirs)}")
+        dirs = {str(k): str(path.parent / str(v)) for k, v in dirs.items()}  # relative to the file
+        active = doc.get("active_joints")
+        if active is not None and not (isinstance(active, list) and all(isinstance(n, str) for n in active)):
+            raise LarcInputError(f"{path}: active_joints must be a list of joint names, got {short_repr(active)}")
+        held = doc.get("held_joints") or {}
+        if not isinstance(held, dict):
+            raise LarcInputError(f"{path}: held_joints must be a mapping JOINT: VALUE, got {short_repr(held)}")
+        for name, value in held.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
+                raise LarcInputError(f"{path}: held_joints.{name} must be a finite number, got {short_repr(value)}")
+        robot = load_robot(urdf, dirs, active_joints=active, held_joint_values=held)
         return robot, load_capsules(path, robot)
     robot = load_robot()
     return robot, load_capsules(default_capsule_path(), robot)
@@ -103,57 +254,181 @@ def _fmt_clearance(g: float) -> str:
     return f"{g * 1000:+.2f} mm"
 
 
-def _cmd_certify(args) -> int:
-    import json
+def _table(result) -> list[str]:
+    """The terminal table: one row per trajectory, then a summary line."""
+    width = max([len("trajectory")] + [len(r.id) for r in result])
+    head = (f"{'trajectory':<{width}}  {'status':<11}  {'evals':>6}  {'min clearance':>14}  "
+            "first inconclusive interval: time span, capsule / box")
+    lines = [head]
+    for r in result:
+        bad = r.first_inconclusive
+        blocked = f"t=[{bad.t0:.4f}, {bad.t1:.4f}] s  {bad.capsule or '-'} / {bad.box or '-'}" if bad else ""
+        lines.append(f"{r.id:<{width}}  {'CERTIFIED' if r.certified else 'UNCERTIFIED':<11}  "
+                     f"{r.evaluations:>6}  {_fmt_clearance(r.min_clearance_m):>14}  {blocked}".rstrip())
+    n_ok = sum(r.certified for r in result)
+    lines.append(f"{n_ok} of {len(result)} certified ({result.method}, margin {result.margin_m * 1000:g} mm, "
+                 f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s)")
+    return lines
+
+
+def _result_json(result, scene_path) -> dict:
     import math
 
-    from .certify import certify
-    from .io import atomic_write_text
-    from .scene import read_scene
-    from .trajectory import read_trajectory
+    def num(x):
+        return x if math.isfinite(x) else None
 
+    return {
+        "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
+        "scene": str(scene_path),
+        "frontier_sizes": list(result.frontier_sizes),
+        "trajectories": [
+            {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
+             "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
+             "first_inconclusive": (
+                 {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
+                  "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,
+                  "clearance_m": num(r.first_inconclusive.clearance_m)}
+                 if r.first_inconclusive else None)}
+            for r in result
+        ],
+    }
+
+
+def _certify_with_progress(args, trajectories, scene, robot, capsules):
+    from .certify import DEFAULT_COARSE_DEPTH, certify
+
+    n = len(trajectories)
+    total = {"fine": n * 2**args.max_depth, "coarse": n * 2**DEFAULT_COARSE_DEPTH}.get(args.method)
+    with _progress_bar(args, total=total, desc=f"certifying ({args.method})",
+                       unit=" intervals") as bar:
+        result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
+                         max_depth=args.max_depth, progress=lambda k: bar.update(k))
+    log.debug("certified %d trajectories in %.3f s (frontier per depth %s)", n, result.wall_time_s,
+              list(result.frontier_sizes))
+    return result
+
+
+def _check_certify_options(args, outputs=()) -> None:
+    """--margin, --max-depth and the output paths, checked before any file is read."""
+    import math
+
+    if not (math.isfinite(args.margin) and args.margin > 0):
+        raise LarcInputError(f"--margin {args.margin!r}: must be a finite number > 0 (metres)")
+    if not 0 <= args.max_depth <= 20:  # certify's limit: 2**20 intervals per trajectory
+        raise LarcInputError(f"--max-depth {args.max_depth}: must be an integer in 0..20")
+    for option, out in outputs:
+        if out and Path(out).is_dir():
+            raise LarcInputError(f"{option} {out}: is a directory, expected a file name to write")
+
+
+def _cmd_certify(args) -> int:
+    import json
+
+    from .scene import read_scene
+
+    _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves)))
+    leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
     robot, capsules = _load_model(args)
     scene = read_scene(args.scene, frame=robot.link_names[0])
-    trajectories = [read_trajectory(p, robot) for p in args.trajectories]
-    result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
-                     max_depth=args.max_depth)
+    log.debug("scene %s: %d boxes", args.scene, scene.n_boxes)
+    trajectories = _read_trajectories(args, args.trajectories, robot)
+    result = _certify_with_progress(args, trajectories, scene, robot, capsules)
     if not args.quiet:
-        print(f"{'trajectory':<28} {'status':<12} {'evals':>6} {'min clearance':>15}  blocked by")
-        for r in result:
-            bad = r.first_inconclusive
-            blocked = (f"t=[{bad.t0:.4f}, {bad.t1:.4f}] s  {bad.capsule} / {bad.box}" if bad else "")
-            print(f"{r.id:<28} {'CERTIFIED' if r.certified else 'UNCERTIFIED':<12} {r.evaluations:>6} "
-                  f"{_fmt_clearance(r.min_clearance_m):>15}  {blocked}")
+        print("\n".join(_table(result)))
     if args.json:
-        def num(x):
-            return x if math.isfinite(x) else None
+        _write_output(args.json, (json.dumps(_result_json(result, args.scene), indent=2) + "\n").encode(),
+                      "per-trajectory results")
+    if args.leaves:
+        n_leaves = sum(len(r.leaves) for r in result)
+        _write_output(args.leaves, _leaves_bytes(result, leaves_fmt), f"{n_leaves} leaves")
+    if all(r.certified for r in result):
+        return EXIT_OK
+    if not args.fail_on_uncertified:
+        log.info("some trajectories are not certified; exit status 0 (--no-fail-on-uncertified)")
+        return EXIT_OK
+    return EXIT_UNCERTIFIED
 
-        doc = {
-            "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
-            "scene": str(args.scene),
-            "frontier_sizes": list(result.frontier_sizes),
-            "trajectories": [
-                {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
-                 "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
-                 "first_inconclusive": (
-                     {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
-                      "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,
-                      "clearance_m": num(r.first_inconclusive.clearance_m)}
-                     if r.first_inconclusive else None)}
-                for r in result
-            ],
-        }
-        atomic_write_text(args.json, json.dumps(doc, indent=2) + "\n")
-    return EXIT_OK if all(r.certified for r in result) else EXIT_UNCERTIFIED
+
+def _check_image_path(path: Path) -> None:
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        raise LarcInputError("larc explain needs matplotlib (pip install matplotlib)") from None
+    kinds = FigureCanvasBase.get_supported_filetypes()
+    if path.suffix.lower().lstrip(".") not in kinds:
+        raise LarcInputError(f"{path}: unknown image type '{path.suffix}' (use one of: "
+                             f"{', '.join('.' + k for k in sorted(kinds))})")
+
+
+def _cmd_explain(args) -> int:
+    from .explain import choose_leaf, describe_leaf, explain, render
+    from .scene import read_scene
+
+    out = Path(args.output) if args.output else None
+    _check_certify_options(args, (("--output", args.output),))
+    _check_image_path(out or Path("x.png"))  # fail before the work
+    robot, capsules = _load_model(args)
+    scene = read_scene(args.scene, frame=robot.link_names[0])
+    (traj,) = _read_trajectories(args, [args.trajectory], robot)
+    result = _certify_with_progress(args, [traj], scene, robot, capsules)[0]
+    leaf = choose_leaf(result, args.leaf, at=args.at)
+    ex = explain(robot, capsules, traj, scene, result, args.margin, leaf=leaf)
+    out = out or Path(f"{result.id}_explain.png")
+    try:
+        render(ex, robot, capsules, traj, scene, result, out)
+    except OSError as exc:
+        raise LarcInputError(f"{out}: cannot write the picture ({exc.strerror or exc})") from None
+    if not args.quiet:
+        status = "CERTIFIED" if result.certified else "UNCERTIFIED"
+        pair = f"capsule {leaf.capsule} / box {leaf.box}" if leaf.box else "no boxes"
+        print(f"{result.id}: {status}; {describe_leaf(result, leaf)}: t=[{leaf.t0:.4f}, {leaf.t1:.4f}] s "
+              f"(depth {leaf.depth}), {pair}, clearance {_fmt_clearance(leaf.clearance_m)}")
+        if ex.capsule >= 0:
+            c = ex.capsule
+            print(f"  axis-to-box distance {ex.distance_m * 1000:.2f} mm vs shell r + margin + motion "
+                  f"= {ex.radius[c] * 1000:.2f} + {ex.margin_m * 1000:.2f} + {ex.motion_b[c] * 1000:.2f} mm")
+    log.info("wrote %s", out)
+    return EXIT_OK
+
+
+def _output_options(in_subcommand: bool) -> argparse.ArgumentParser:
+    """--quiet / --verbose / --progress, accepted before and after the subcommand. In the
+    subcommands their default is SUPPRESS, so a flag given before the subcommand survives."""
+    o = argparse.ArgumentParser(add_help=False)
+    g = o.add_argument_group("output")
+    unset = {"default": argparse.SUPPRESS} if in_subcommand else {}
+    g.add_argument("--quiet", "-q", action="store_true", **(unset or {"default": False}),
+                   help="print nothing but errors (files asked for are still written)")
+    g.add_argument("--verbose", "-v", action="store_true", **(unset or {"default": False}),
+                   help="debug log messages on stderr")
+    g.add_argument("--progress", action=argparse.BooleanOptionalAction, **(unset or {"default": None}),
+                   help="progress bars on stderr (default: only when stderr is a terminal)")
+    return o
+
+
+class _UsageError(Exception):
+    """A command-line usage error (argparse's), reported like bad input: one line, exit 2."""
+
+
+class _ArgumentParser(argparse.ArgumentParser):
+    """argparse, but a usage error raises :class:`_UsageError` instead of printing the usage
+    block and exiting, so ``main`` reports it as one ``larc: error:`` line (exit 2) and returns
+    (``--help`` still prints and exits 0). Subparsers inherit the class."""
+
+    def error(self, message):
+        raise _UsageError(f"{message} (see `{self.prog} --help`)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="larc", description=__doc__.splitlines()[0])
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress output")
-    p.add_argument("--verbose", "-v", action="store_true", help="debug logging")
+    p = _ArgumentParser(
+        prog="larc", description=__doc__.splitlines()[0], parents=[_output_options(False)],
+        epilog="Exit status: 0 success / all certified, 1 some trajectory not certified, "
+               "2 bad input or usage, 3 internal error.")
     sub = p.add_subparsers(dest="command", required=True)
+    common = [_output_options(True)]
 
-    f = sub.add_parser("fit-capsules", help="fit proven capsules to a URDF's collision meshes")
+    f = sub.add_parser("fit-capsules", help="fit proven capsules to a URDF's collision meshes",
+                       parents=common)
     f.add_argument("urdf", help="URDF file")
     f.add_argument("-o", "--output", required=True, help="capsule YAML to write")
     f.add_argument("--package-dir", action="append", metavar="NAME=PATH",
@@ -170,34 +445,74 @@ def build_parser() -> argparse.ArgumentParser:
                    help="do not record the URDF path in the file (e.g. for PIPER, found via env)")
     f.set_defaults(func=_cmd_fit_capsules)
 
-    c = sub.add_parser("certify", help="certify trajectories against a scene",
-                       description="Exit status: 0 all certified, 1 some not certified, 2 bad input.")
+    c = sub.add_parser("certify", help="certify trajectories against a scene", parents=common,
+                       description="Exit status: 0 all certified (or --no-fail-on-uncertified), "
+                                   "1 some not certified, 2 bad input or usage, 3 internal error.")
     c.add_argument("trajectories", nargs="+", metavar="TRAJ_FILE",
-                   help="JointTrajectory YAML/JSON files (joint_names, points with positions, "
-                        "velocities, time_from_start)")
-    c.add_argument("--scene", required=True, help="scene YAML: {frame, boxes: [{name, min, max}]}")
+                   help="trajectory files: JointTrajectory / RobotTrajectory / DisplayTrajectory "
+                        "YAML or JSON (e.g. `ros2 topic echo --once` output), or CSV "
+                        "(t, <joint>..., <joint>_vel...)")
+    c.add_argument("--scene", required=True,
+                   help="scene YAML {frame, boxes: [{name, min, max}]} or MoveIt .scene text (boxes)")
+    c.add_argument("--velocities", default="recorded", choices=["recorded", "finite-difference"],
+                   help="recorded: use the file's velocities (default; a file without them is "
+                        "refused); finite-difference: compute them from the positions (the "
+                        "certificate then covers the Hermite curve through those velocities)")
     c.add_argument("--method", default="larc", choices=["larc", "fine", "coarse", "reference"])
     c.add_argument("--margin", type=float, default=0.01, help="clearance margin rho, m (default 0.01)")
     c.add_argument("--max-depth", type=int, default=9, help="maximum bisection depth (default 9)")
     c.add_argument("--robot", help="robot file from `larc fit-capsules` (default: PIPER)")
     c.add_argument("--json", metavar="OUT.json", help="write per-trajectory results as JSON")
+    c.add_argument("--leaves", metavar="OUT.parquet",
+                   help="write the full leaf cover, one row per leaf (id, depth, index, t0, t1, "
+                        "clearance_m, certified, capsule, box); .parquet or .csv by suffix")
+    c.add_argument("--fail-on-uncertified", action=argparse.BooleanOptionalAction, default=True,
+                   help="exit 1 if some trajectory is not certified (default); with "
+                        "--no-fail-on-uncertified exit 0 unless the input is bad")
     c.set_defaults(func=_cmd_certify)
+
+    e = sub.add_parser(
+        "explain", parents=common,
+        help="certify one trajectory and draw the interval that blocks it (or its tightest one)",
+        description="Certify one trajectory (LARC) and draw one leaf: the capsules at the interval "
+                    "midpoint, their shells r + margin + motion radius, the boxes (the blocking one "
+                    "in red), the gripper path and every leaf's clearance. Exit status: 0 picture "
+                    "written (certified or not), 2 bad input, 3 internal error.")
+    e.add_argument("trajectory", metavar="TRAJ_FILE", help="one trajectory file (as for certify)")
+    e.add_argument("--scene", required=True, help="scene file (as for certify)")
+    e.add_argument("--robot", help="robot file from `larc fit-capsules` (default: PIPER)")
+    e.add_argument("--velocities", default="recorded", choices=["recorded", "finite-difference"],
+                   help="as for certify")
+    e.add_argument("--margin", type=float, default=0.01, help="clearance margin rho, m (default 0.01)")
+    e.add_argument("--max-depth", type=int, default=9, help="maximum bisection depth (default 9)")
+    e.add_argument("--leaf", choices=["first", "worst"], default="first",
+                   help="first: the first inconclusive leaf (the one `certify` names), or the "
+                        "tightest leaf of a certified trajectory (default); worst: the leaf with "
+                        "the smallest clearance")
+    e.add_argument("--at", type=float, metavar="SECONDS", help="draw the leaf containing this time")
+    e.add_argument("-o", "--output", metavar="OUT.png",
+                   help="image to write (format from the suffix; default ID_explain.png)")
+    e.set_defaults(func=_cmd_explain, method="larc")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else (logging.WARNING if args.quiet else logging.INFO),
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-    logging.getLogger("jax").setLevel(logging.WARNING)  # backend probing noise
     try:
-        return args.func(args)
-    except LarcInputError as exc:
+        args = parser.parse_args(argv)
+    except _UsageError as exc:
         print(f"larc: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    with _logging_for(args):
+        try:
+            return args.func(args)
+        except LarcInputError as exc:
+            print(f"larc: error: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except Exception:  # noqa: BLE001 - a bug: exit 3, never 1 (which means "not certified")
+            traceback.print_exc(file=sys.stderr)
+            print("larc: internal error (a bug; the traceback is above)", file=sys.stderr)
+            return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -10,6 +10,17 @@ revolute/prismatic joints that a trajectory carries (for PIPER: joint1..joint6).
 movable joint (e.g. the gripper fingers, which branch off link6) is held at a fixed value
 recorded in the model.
 
+URDF coverage: fixed, revolute, prismatic and continuous joints; any tree (branches that carry no
+movable joint, e.g. ``tool0`` or ``flange`` frames, are followed by the default trunk rule);
+links with several or no collision elements. *Continuous* joints are revolute joints whose
+limits are taken as ``±CONTINUOUS_LIMIT_RAD`` (4π, two turns each way): the motion constants of a
+revolute joint never depend on its limits, and the bound keeps joint values small enough for
+the documented floating-point rounding guard; a trajectory beyond it is refused as out of
+limits. *Mimic* joints (``<mimic joint=... multiplier=... offset=...>``, e.g. linkage grippers)
+are supported when they are not active and their leader is held: they are held at
+``multiplier * leader + offset``. A mimic joint that follows an active joint, or another mimic
+joint, is refused.
+
 Frames: the URDF root link is the world/base frame. ``T_world_link[i]`` maps link ``i``
 coordinates to base coordinates (4×4 homogeneous, metres).
 """
@@ -39,11 +50,15 @@ __all__ = [
     "piper_description_dir",
     "piper_urdf_path",
     "file_sha256",
+    "CONTINUOUS_LIMIT_RAD",
 ]
+
+CONTINUOUS_LIMIT_RAD = 4.0 * np.pi
+"""Limits (±) given to the values of continuous joints, rad (see the module docstring)."""
 
 
 class JointType(enum.IntEnum):
-    """Kinds of joint the model supports (continuous joints are revolute without limits)."""
+    """Kinds of joint the model supports (continuous joints are revolute, limits ±CONTINUOUS_LIMIT_RAD)."""
 
     FIXED = 0
     REVOLUTE = 1
@@ -67,9 +82,9 @@ class Robot:
     q_held: jax.Array
     """(L,) value at which a movable joint that is *not* active is held (rad or m); 0 otherwise."""
     q_lower: jax.Array
-    """(n,) lower limits of the active joints (rad or m; -inf for continuous joints)."""
+    """(n,) lower limits of the active joints (rad or m; -CONTINUOUS_LIMIT_RAD for continuous joints)."""
     q_upper: jax.Array
-    """(n,) upper limits of the active joints (rad or m; +inf for continuous joints)."""
+    """(n,) upper limits of the active joints (rad or m; +CONTINUOUS_LIMIT_RAD for continuous joints)."""
 
     name: str = dataclasses.field(metadata=dict(static=True))
     link_names: tuple[str, ...] = dataclasses.field(metadata=dict(static=True))
@@ -307,10 +322,12 @@ def load_robot(
       urdf_path: URDF file; ``None`` resolves PIPER via :func:`piper_urdf_path`.
       package_dirs: ``{package name: folder}`` for ``package://`` URIs.
       active_joints: joints a trajectory carries, in configuration order. Default: the movable
-        joints of the trunk (from the root while each link has exactly one child joint), which for
-        PIPER is joint1..joint6 (the two finger joints branch off link6).
+        joints of the trunk: from the root, follow the one child joint whose subtree holds a
+        movable joint, and stop where none or several do (PIPER: joint1..joint6, the two finger
+        joints branch off link6; a UR arm's fixed ``base``/``tool0`` frames are passed over).
       held_joint_values: values for movable joints that are not active (default 0 clipped into
-        the joint's limits).
+        the joint's limits). Mimic joints follow their leader; a value given for one must equal
+        ``multiplier * leader + offset``.
     """
     urdf_path = Path(urdf_path) if urdf_path is not None else piper_urdf_path()
     model = load_urdf_model(urdf_path, package_dirs)
@@ -326,10 +343,23 @@ def load_robot(
             raise LarcInputError(
                 f"{urdf_path}: joint '{j.name}' ({j.type}) has no <limit lower=... upper=...>"
             )
-        if j.limit is not None and j.limit.lower is not None and j.limit.lower > j.limit.upper:
+        if (j.type in ("revolute", "prismatic")
+                and not (np.isfinite(j.limit.lower) and np.isfinite(j.limit.upper))):
+            raise LarcInputError(f"{urdf_path}: joint '{j.name}' has a non-finite limit")
+        if j.type in ("revolute", "prismatic") and j.limit.lower > j.limit.upper:
             raise LarcInputError(f"{urdf_path}: joint '{j.name}' has limit lower > upper")
         if j.mimic is not None:
-            raise LarcInputError(f"{urdf_path}: joint '{j.name}' is a mimic joint (unsupported)")
+            leader = joints.get(j.mimic.joint)
+            if leader is None or leader.type not in _TYPE_OF or leader.type == "fixed":
+                raise LarcInputError(
+                    f"{urdf_path}: mimic joint '{j.name}' follows '{j.mimic.joint}', which is not "
+                    f"a movable joint"
+                )
+            if leader.mimic is not None:
+                raise LarcInputError(
+                    f"{urdf_path}: mimic joint '{j.name}' follows '{leader.name}', itself a mimic "
+                    f"joint (unsupported)"
+                )
     child_links = {j.child for j in model.robot.joints}
     roots = [l.name for l in model.robot.links if l.name not in child_links]
     if len(roots) != 1:
@@ -344,17 +374,29 @@ def load_robot(
             parent.append(k)
             joint_of.append(j)
         k += 1
+    if len(link_names) != len(model.robot.links):
+        raise LarcInputError(f"{urdf_path}: links and joints do not form one tree")
 
     movable = lambda j: j is not None and _TYPE_OF[j.type] != JointType.FIXED  # noqa: E731
+
+    def has_movable(j) -> bool:
+        """Whether joint ``j`` or any joint below it is movable."""
+        return movable(j) or any(has_movable(c) for c in children.get(j.child, []))
+
     if active_joints is None:
         active, link = [], roots[0]
-        while len(children.get(link, [])) == 1:
-            j = children[link][0]
+        while True:
+            branches = [j for j in children.get(link, []) if has_movable(j)]
+            if len(branches) != 1:
+                break
+            j = branches[0]
             if movable(j):
                 active.append(j.name)
             link = j.child
     else:
         active = list(active_joints)
+        if len(set(active)) != len(active):
+            raise LarcInputError(f"{urdf_path}: active joints have duplicates: {active}")
         for name in active:
             if name not in joints:
                 raise LarcInputError(f"{urdf_path}: no joint named '{name}'")
@@ -374,9 +416,69 @@ def load_robot(
                     f"ancestor of '{b}'"
                 )
     if not active:
-        raise LarcInputError(f"{urdf_path}: no movable joints to form a serial chain")
+        where = f" (the trunk branches at link '{link}': choose them with --joints)" if (
+            active_joints is None and branches) else ""
+        raise LarcInputError(f"{urdf_path}: no movable joints to form a serial chain{where}")
+    for name in active:
+        if joints[name].mimic is not None:
+            raise LarcInputError(
+                f"{urdf_path}: joint '{name}' is a mimic joint (follows '{joints[name].mimic.joint}') "
+                f"and cannot be active"
+            )
+    for j in model.robot.joints:
+        if j.mimic is not None and j.mimic.joint in active:
+            raise LarcInputError(
+                f"{urdf_path}: mimic joint '{j.name}' follows the active joint '{j.mimic.joint}' "
+                f"(unsupported: the motion constants assume independent joints)"
+            )
 
+    def limits(j) -> tuple[float, float]:
+        if j.type == "continuous":
+            return -CONTINUOUS_LIMIT_RAD, CONTINUOUS_LIMIT_RAD
+        if j.type == "fixed":
+            return 0.0, 0.0
+        return float(j.limit.lower), float(j.limit.upper)
+
+    # Held values: explicit or 0 clipped into the limits for leaders, then the mimic joints.
     held = dict(held_joint_values or {})
+    unknown = sorted(n for n in held if n not in joints or n in active or not movable(joints[n]))
+    if unknown:
+        raise LarcInputError(
+            f"{urdf_path}: held_joint_values names unknown, fixed or active joints {unknown}"
+        )
+    held_value: dict[str, float] = {}
+    for j in model.robot.joints:
+        if not movable(j) or j.name in active or j.mimic is not None:
+            continue
+        lo, hi = limits(j)
+        if j.name in held:
+            v = float(held[j.name])
+            if not lo <= v <= hi:
+                raise LarcInputError(
+                    f"{urdf_path}: held value {v} of joint '{j.name}' is outside [{lo}, {hi}]"
+                )
+        else:
+            v = float(np.clip(0.0, lo, hi))
+        held_value[j.name] = v
+    for j in model.robot.joints:
+        if j.mimic is None:
+            continue
+        v = float(j.mimic.multiplier if j.mimic.multiplier is not None else 1.0) * held_value[
+            j.mimic.joint] + float(j.mimic.offset if j.mimic.offset is not None else 0.0)
+        if j.name in held and abs(float(held[j.name]) - v) > 1e-9:
+            raise LarcInputError(
+                f"{urdf_path}: held value {held[j.name]} of mimic joint '{j.name}' differs from "
+                f"{v} implied by '{j.mimic.joint}'; hold '{j.mimic.joint}' instead"
+            )
+        lo, hi = limits(j)
+        tol = 1e-9 * max(1.0, abs(lo), abs(hi))
+        if not lo - tol <= v <= hi + tol:
+            raise LarcInputError(
+                f"{urdf_path}: mimic joint '{j.name}' would be held at {v} (from "
+                f"'{j.mimic.joint}' = {held_value[j.mimic.joint]}), outside its limits [{lo}, {hi}]"
+            )
+        held_value[j.name] = v
+
     n_links = len(link_names)
     T = np.tile(np.eye(4), (n_links, 1, 1))
     axis = np.zeros((n_links, 3))
@@ -388,35 +490,23 @@ def load_robot(
         j = joint_of[i]
         t = _TYPE_OF[j.type]
         T[i] = np.asarray(j.origin if j.origin is not None else np.eye(4), dtype=np.float64)
+        if not np.isfinite(T[i]).all():
+            raise LarcInputError(f"{urdf_path}: joint '{j.name}' has a non-finite origin")
         if t != JointType.FIXED:
             ax = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=np.float64)
             norm = np.linalg.norm(ax)
             if not np.isfinite(norm) or norm == 0:
                 raise LarcInputError(f"{urdf_path}: joint '{j.name}' has a zero or invalid axis")
             axis[i] = ax / norm
-        lo = j.limit.lower if (j.type != "continuous" and j.limit is not None) else -np.inf
-        hi = j.limit.upper if (j.type != "continuous" and j.limit is not None) else np.inf
         jtype.append(t)
         jname.append(j.name)
         if j.name in active:
             q_index.append(active.index(j.name))
-            lower[active.index(j.name)] = -np.inf if lo is None else lo
-            upper[active.index(j.name)] = np.inf if hi is None else hi
+            lower[active.index(j.name)], upper[active.index(j.name)] = limits(j)
         else:
             q_index.append(-1)
             if t != JointType.FIXED:
-                if j.name in held:
-                    v = float(held.pop(j.name))
-                    if not lo <= v <= hi:
-                        raise LarcInputError(
-                            f"{urdf_path}: held value {v} of joint '{j.name}' is outside "
-                            f"[{lo}, {hi}]"
-                        )
-                else:
-                    v = float(np.clip(0.0, lo, hi))
-                q_held[i] = v
-    if held:
-        raise LarcInputError(f"{urdf_path}: held_joint_values names unknown or active joints {sorted(held)}")
+                q_held[i] = held_value[j.name]
 
     dirs = _package_dirs_for(urdf_path, package_dirs)
     return Robot(
