@@ -27,9 +27,9 @@ As in MoveIt, the newer layout is recognised by the line after the first ``*`` l
 several numbers (a position) rather than one (the shape count). Coordinates are metres in the
 MoveIt planning frame, which is taken to be the robot base frame (PIPER: ``base_link``): a scene
 saved in another planning frame must be re-expressed first. A box whose orientation (object
-pose composed with shape pose) is the identity within 1e-9 becomes its exact AABB; a rotated box
-is replaced by its enclosing AABB, rounded outwards (conservative: a certificate against the
-larger box holds for the real one), with a warning naming the file and object. Spheres,
+pose composed with shape pose) is exactly the identity becomes its exact AABB; any other box is
+replaced by its enclosing AABB, rounded outwards (conservative: a certificate against the
+larger box holds for the real one), with a warning naming the file and object when the rotation exceeds 1e-9. Spheres,
 cylinders, cones, meshes and planes are refused.
 """
 
@@ -53,7 +53,8 @@ __all__ = ["Scene", "read_scene", "read_moveit_scene", "scene_from_dict", "pad_s
 log = logging.getLogger(__name__)
 
 IDENTITY_TOLERANCE = 1e-9
-"""A box orientation within this (max-abs rotation-matrix entry) of the identity is axis-aligned."""
+"""A box orientation within this (max-abs rotation-matrix entry) of the identity is not warned
+about; its box is still the (padded) enclosing AABB, never the unrotated one."""
 
 QUATERNION_NORM_TOLERANCE = 1e-3
 """A ``.scene`` quaternion is normalised; one whose norm is further than this from 1 is refused
@@ -295,12 +296,14 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
             rot = r_obj @ r_shape
             half = size / 2.0
             box_name = obj if n_shapes == 1 else f"{obj}[{k}]"
-            if np.abs(rot - np.eye(3)).max() <= IDENTITY_TOLERANCE:
-                b_lo, b_hi = center - half, center + half
-            else:
-                ext = np.abs(rot) @ half
-                pad = 8 * np.finfo(np.float64).eps * (np.abs(center) + ext)  # > rounding error
-                b_lo, b_hi = center - ext - pad, center + ext + pad
+            # Always the enclosing AABB: exact (ext == half, no pad) for the identity, and padded
+            # outwards by more than the rounding error of |R| @ half otherwise, so a rotation that
+            # is only *nearly* the identity never shrinks the box.
+            exact = bool((rot == np.eye(3)).all())
+            ext = half if exact else np.abs(rot) @ half
+            pad = 0.0 if exact else 8 * np.finfo(np.float64).eps * (np.abs(center) + ext)
+            b_lo, b_hi = center - ext - pad, center + ext + pad
+            if np.abs(rot - np.eye(3)).max() > IDENTITY_TOLERANCE:  # a real rotation: say so
                 log.warning("%s: object '%s' (line %d) is a rotated box: replaced by its enclosing "
                             "axis-aligned box [%s] .. [%s] (conservative)", source, box_name, sline,
                             ", ".join(f"{v:.4f}" for v in b_lo), ", ".join(f"{v:.4f}" for v in b_hi))

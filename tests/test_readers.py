@@ -92,6 +92,23 @@ def test_example_scene_rotated_box_enclosed_and_warned(caplog):
     np.testing.assert_allclose(scene.hi[1], corners.max(0), atol=1e-12)
 
 
+def test_scene_nearly_identity_box_is_still_enclosed(tmp_path, caplog):
+    # A rotation of 1e-10 rad is below the warning threshold, but the box must not shrink:
+    # every rotated corner stays inside the AABB that the reader returns.
+    angle = 1e-10
+    rot = Rotation.from_euler("z", angle).as_matrix()
+    q = Rotation.from_euler("z", angle).as_quat()
+    size, center = [2.0, 1.0, 0.5], np.array([0.3, -0.2, 0.1])
+    fmt = lambda v: " ".join(repr(float(x)) for x in v)  # noqa: E731
+    text = (f"s\n* wall\n{fmt(center)}\n{fmt(q)}\n1\nbox\n{fmt(size)}\n0 0 0\n0 0 0 1\n"
+            "0 0 0 0\n0\n.\n")
+    with caplog.at_level(logging.WARNING):
+        scene = read_scene(_write(tmp_path, "near.scene", text))
+    assert not caplog.records
+    corners = _corners(center, rot, size)
+    assert (corners >= scene.lo[0]).all() and (corners <= scene.hi[0]).all()
+
+
 def test_scene_object_pose_composed_with_shape_pose(tmp_path, caplog):
     r_obj = Rotation.from_euler("xyz", [0.3, -0.7, 1.1])
     r_shape = Rotation.from_euler("xyz", [-0.4, 0.2, 0.9])
