@@ -145,7 +145,7 @@ def audit_file_in_worker(path: str, scene_file: str) -> dict:
     """Audit one trajectory file in a process set up by :func:`_init_worker` (the FCL model
     is built once per process, scene boxes are cached per scene file)."""
     from experiments.collision import SceneBoxes
-    from larc_jax.trajectory import read_trajectory
+    from larc_jax.trajectory_files import read_trajectory
 
     model = _W["model"]
     boxes = _W["boxes"].get(scene_file)

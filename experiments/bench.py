@@ -16,10 +16,10 @@ import time
 import jax
 import numpy as np
 
-from larc_jax.capsules import default_capsule_path, load_capsules
+from larc_jax.enclosure import default_capsule_path, load_capsules
 from larc_jax.certify import certify
 from larc_jax.io import atomic_write_json
-from larc_jax.robot import load_robot
+from larc_jax.urdf import load_robot
 from larc_jax.scene import Scene
 from larc_jax.trajectory import Trajectory
 

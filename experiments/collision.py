@@ -139,17 +139,17 @@ def _link_geometries(robot, link: str, model=None):
     import fcl
     import trimesh
 
-    from larc_jax.robot import _package_dirs_for, _resolve_uri, load_urdf_model
+    from larc_jax.urdf import package_dirs_for, resolve_uri, load_urdf_model
 
     if model is None:
         model = load_urdf_model(robot.urdf_path, dict(robot.package_dirs))
-    dirs = _package_dirs_for(Path(robot.urdf_path), dict(robot.package_dirs))
+    dirs = package_dirs_for(Path(robot.urdf_path), dict(robot.package_dirs))
     out = []
     for col in model.link_map[link].collisions:
         origin = np.asarray(col.origin if col.origin is not None else np.eye(4), dtype=np.float64)
         g = col.geometry
         if g.mesh is not None:
-            path = _resolve_uri(g.mesh.filename, Path(robot.urdf_path), dirs)
+            path = resolve_uri(g.mesh.filename, Path(robot.urdf_path), dirs)
             mesh = trimesh.load(str(path), force="mesh")
             scale = np.asarray(g.mesh.scale if g.mesh.scale is not None else 1.0, dtype=np.float64)
             verts = np.asarray(mesh.vertices, dtype=np.float64) * scale
@@ -180,7 +180,7 @@ class CollisionModel:
     def __init__(self, robot=None):
         import fcl
 
-        from larc_jax.robot import load_robot, load_urdf_model
+        from larc_jax.urdf import load_robot, load_urdf_model
 
         self._fcl = fcl
         self.robot = robot if robot is not None else load_robot()

@@ -240,10 +240,10 @@ VIEWS = (("top", (0, 1), "x (m)", "y (m)"), ("side", (0, 2), "x (m)", "z (m)"), 
 
 def _replay_data(path, scene_path, robot, caps):
     from larc_jax.hermite import evaluate_np
-    from larc_jax.capsules import capsule_segments_np
+    from larc_jax.enclosure import capsule_segments_np
     from larc_jax.robot import forward_kinematics_np
     from larc_jax.scene import read_scene
-    from larc_jax.trajectory import read_trajectory
+    from larc_jax.trajectory_files import read_trajectory
 
     tr = read_trajectory(path, robot)
     sc = read_scene(scene_path)

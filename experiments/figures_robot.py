@@ -76,7 +76,7 @@ def draw(out: str | Path = DEFAULT_OUT, capsule_path: str | Path | None = None, 
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from experiments.collision import CollisionModel
-    from larc_jax.capsules import default_capsule_path, load_capsules
+    from larc_jax.enclosure import default_capsule_path, load_capsules
     from larc_jax.io import atomic_write_bytes
     from larc_jax.robot import forward_kinematics_np
 

@@ -113,7 +113,7 @@ def _resolve(path: str | Path, root: Path = ROOT) -> Path:
 
 def moveit_limits(robot, path: str | Path | None = None) -> dict:
     """MoveIt joint limits for the robot's active joints: lo, hi, vmax, amax (n,) and scalings."""
-    from larc_jax.robot import piper_description_dir
+    from larc_jax.urdf import piper_description_dir
 
     path = Path(path) if path is not None else piper_description_dir() / "config" / "moveit_joint_limits.yaml"
     doc = yaml.safe_load(path.read_text())
@@ -471,7 +471,7 @@ def _contact_detail(ctx: _Context, q) -> str:
 def scene_fingerprint(scene_name: str, config: dict, n_pairs: int, max_attempts: int,
                       root: Path = ROOT) -> str:
     """Hash of every input that determines a scene's output (resume check)."""
-    from larc_jax.robot import piper_urdf_path
+    from larc_jax.urdf import piper_urdf_path
 
     sc = config["scenes"][scene_name]
     parts = {
@@ -532,7 +532,7 @@ def generate_scene(
     """Generate one scene's pairs (see module docstring). Returns the scene summary (also
     written as the done-marker). Skips the work if a matching done-marker exists."""
     from larc_jax.io import atomic_write_json, atomic_write_text
-    from larc_jax.trajectory import write_trajectory
+    from larc_jax.trajectory_files import write_trajectory
 
     if not isinstance(config, dict):
         config = load_config(config)

@@ -161,7 +161,7 @@ def fingerprint(files: Sequence[Path], params: dict | None = None) -> str:
 
 
 def _library_sources() -> list[Path]:
-    return sorted((ROOT / "larc_jax").glob("*.py"))
+    return sorted((ROOT / "larc_jax").rglob("*.py"))
 
 
 class StageBook:
@@ -237,7 +237,7 @@ def dataset_index(layout: Layout, config: dict) -> list[dict]:
 
 def _load_dataset(layout: Layout, config: dict, robot):
     from larc_jax.scene import read_scene
-    from larc_jax.trajectory import read_trajectory
+    from larc_jax.trajectory_files import read_trajectory
 
     index = dataset_index(layout, config)
     scenes = {s: read_scene(p) for s, p in scene_paths(config).items()}
@@ -413,8 +413,8 @@ def stage_audit(layout: Layout, config: dict, workers: int, force: bool):
 
 
 def _robot_and_capsules(config: dict):
-    from larc_jax.capsules import default_capsule_path, load_capsules
-    from larc_jax.robot import load_robot
+    from larc_jax.enclosure import default_capsule_path, load_capsules
+    from larc_jax.urdf import load_robot
 
     robot = load_robot()
     cap_path = _resolve(config.get("capsules", default_capsule_path()))

@@ -10,30 +10,37 @@ Typical use::
     df = result.to_dataframe()
 """
 
-from .capsules import (
+from .certify import Method, certify
+from .defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
+from .enclosure import (
     CapsuleModel,
     capsule_segments,
     default_capsule_path,
     fit_capsules,
     load_capsules,
+    load_robot_file,
     motion_constants,
     verify_containment,
 )
-from .certify import DatasetResult, Leaf, Method, TrajectoryResult, certify, interval_clearance
 from .errors import LarcInputError
 from .geometry import segment_box_distance, segment_box_distances
 from .hermite import HermiteSpline, speed_max
-from .robot import JointType, Robot, forward_kinematics, load_robot
+from .interval import IntervalEval, evaluate_interval, interval_clearance
+from .results import DatasetResult, Leaf, TrajectoryResult
+from .robot import JointType, Robot, forward_kinematics
 from .scene import Scene, read_moveit_scene, read_scene
-from .trajectory import Trajectory, finite_difference_velocities, read_trajectory, write_trajectory
+from .trajectory import Trajectory, finite_difference_velocities
+from .trajectory_files import read_trajectory, write_trajectory
+from .urdf import load_robot
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "CapsuleModel", "DatasetResult", "HermiteSpline", "JointType", "LarcInputError", "Leaf",
+    "CapsuleModel", "DatasetResult", "HermiteSpline", "IntervalEval", "JointType", "LarcInputError", "Leaf",
     "Method", "Robot", "Scene", "Trajectory", "TrajectoryResult", "capsule_segments", "certify",
-    "default_capsule_path", "fit_capsules", "forward_kinematics", "interval_clearance",
-    "load_capsules", "load_robot", "motion_constants", "read_scene", "read_trajectory",
+    "default_capsule_path", "evaluate_interval", "fit_capsules", "forward_kinematics", "interval_clearance",
+    "load_capsules", "load_robot", "load_robot_file", "motion_constants", "read_scene", "read_trajectory",
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities",
+    "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH",
 ]

@@ -13,14 +13,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import io
 import logging
 import sys
 import traceback
 import warnings
 from pathlib import Path
 
+from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, DEFAULT_PADDING_M, METHODS,
+                       VELOCITY_MODES, check_depth, check_margin)
 from .errors import LarcInputError
+from .report import format_clearance, leaves_bytes, result_json, table_lines
 
 log = logging.getLogger("larc")
 
@@ -122,18 +124,9 @@ def _leaves_format(path: str) -> str:
     return fmt
 
 
-def _leaves_bytes(result, fmt: str) -> bytes:
-    df = result.leaves_dataframe()
-    if fmt == "csv":
-        return df.to_csv(index=False).encode("utf-8")  # floats as shortest round-trip repr
-    buf = io.BytesIO()
-    df.to_parquet(buf, index=False)
-    return buf.getvalue()
-
-
 def _read_trajectories(args, paths, robot):
     """Read trajectory files (progress bar over the files)."""
-    from .trajectory import read_trajectory
+    from .trajectory_files import read_trajectory
 
     kwargs = {"velocities": args.velocities} if getattr(args, "velocities", None) else {}
     out = []
@@ -156,8 +149,8 @@ def _package_dirs(items: list[str] | None) -> dict[str, str]:
 
 
 def _cmd_fit_capsules(args) -> int:
-    from .capsules import fit_capsules, load_capsules, save_capsules, verify_containment
-    from .robot import load_robot
+    from .enclosure import fit_capsules, load_capsules, save_capsules, verify_containment
+    from .urdf import load_robot
 
     per_link = {}
     for item in args.capsules_per_link or []:
@@ -208,94 +201,8 @@ def _cmd_fit_capsules(args) -> int:
     return EXIT_OK
 
 
-def _load_model(args):
-    """Robot + capsules: ``--robot FILE`` (a capsule file with a ``urdf`` field) or PIPER."""
-    from .capsules import default_capsule_path, load_capsules
-    from .robot import load_robot
-
-    if args.robot:
-        from .io import parse_yaml, read_input_text, short_repr
-
-        path = Path(args.robot)
-        doc = parse_yaml(read_input_text(path, "robot file"), str(path))
-        if doc is None:
-            raise LarcInputError(f"{path}: robot file is empty")
-        if not isinstance(doc, dict) or "urdf" not in doc:
-            raise LarcInputError(f"{path}: missing field 'urdf' (write it with `larc fit-capsules URDF -o FILE`)")
-        if not isinstance(doc["urdf"], str) or not doc["urdf"]:
-            raise LarcInputError(f"{path}: urdf must be a file path, got {short_repr(doc['urdf'])}")
-        urdf = Path(doc["urdf"])
-        if not urdf.is_absolute():
-            urdf = path.parent / urdf
-        dirs = doc.get("package_dirs") or {}
-        if not isinstance(dirs, dict) or not all(isinstance(v, str) for v in dirs.values()):
-            raise LarcInputError(f"{path}: package_dirs must be a mapping NAME: FOLDER, got {short_repr(dirs)}")
-        dirs = {str(k): str(path.parent / str(v)) for k, v in dirs.items()}  # relative to the file
-        active = doc.get("active_joints")
-        if active is not None and not (isinstance(active, list) and all(isinstance(n, str) for n in active)):
-            raise LarcInputError(f"{path}: active_joints must be a list of joint names, got {short_repr(active)}")
-        held = doc.get("held_joints") or {}
-        if not isinstance(held, dict):
-            raise LarcInputError(f"{path}: held_joints must be a mapping JOINT: VALUE, got {short_repr(held)}")
-        for name, value in held.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
-                raise LarcInputError(f"{path}: held_joints.{name} must be a finite number, got {short_repr(value)}")
-        robot = load_robot(urdf, dirs, active_joints=active, held_joint_values=held)
-        return robot, load_capsules(path, robot)
-    robot = load_robot()
-    return robot, load_capsules(default_capsule_path(), robot)
-
-
-def _fmt_clearance(g: float) -> str:
-    if g != g:
-        return "nan"
-    if g == float("inf"):
-        return "inf (no boxes)"
-    return f"{g * 1000:+.2f} mm"
-
-
-def _table(result) -> list[str]:
-    """The terminal table: one row per trajectory, then a summary line."""
-    width = max([len("trajectory")] + [len(r.id) for r in result])
-    head = (f"{'trajectory':<{width}}  {'status':<11}  {'evals':>6}  {'min clearance':>14}  "
-            "first inconclusive interval: time span, capsule / box")
-    lines = [head]
-    for r in result:
-        bad = r.first_inconclusive
-        blocked = f"t=[{bad.t0:.4f}, {bad.t1:.4f}] s  {bad.capsule or '-'} / {bad.box or '-'}" if bad else ""
-        lines.append(f"{r.id:<{width}}  {'CERTIFIED' if r.certified else 'UNCERTIFIED':<11}  "
-                     f"{r.evaluations:>6}  {_fmt_clearance(r.min_clearance_m):>14}  {blocked}".rstrip())
-    n_ok = sum(r.certified for r in result)
-    lines.append(f"{n_ok} of {len(result)} certified ({result.method}, margin {result.margin_m * 1000:g} mm, "
-                 f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s)")
-    return lines
-
-
-def _result_json(result, scene_path) -> dict:
-    import math
-
-    def num(x):
-        return x if math.isfinite(x) else None
-
-    return {
-        "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
-        "scene": str(scene_path),
-        "frontier_sizes": list(result.frontier_sizes),
-        "trajectories": [
-            {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
-             "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
-             "first_inconclusive": (
-                 {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
-                  "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,
-                  "clearance_m": num(r.first_inconclusive.clearance_m)}
-                 if r.first_inconclusive else None)}
-            for r in result
-        ],
-    }
-
-
 def _certify_with_progress(args, trajectories, scene, robot, capsules):
-    from .certify import DEFAULT_COARSE_DEPTH, certify
+    from .certify import certify
 
     n = len(trajectories)
     total = {"fine": n * 2**args.max_depth, "coarse": n * 2**DEFAULT_COARSE_DEPTH}.get(args.method)
@@ -310,12 +217,8 @@ def _certify_with_progress(args, trajectories, scene, robot, capsules):
 
 def _check_certify_options(args, outputs=()) -> None:
     """--margin, --max-depth and the output paths, checked before any file is read."""
-    import math
-
-    if not (math.isfinite(args.margin) and args.margin > 0):
-        raise LarcInputError(f"--margin {args.margin!r}: must be a finite number > 0 (metres)")
-    if not 0 <= args.max_depth <= 20:  # certify's limit: 2**20 intervals per trajectory
-        raise LarcInputError(f"--max-depth {args.max_depth}: must be an integer in 0..20")
+    check_margin(args.margin, "--margin")
+    check_depth(args.max_depth, "--max-depth")
     for option, out in outputs:
         if out and Path(out).is_dir():
             raise LarcInputError(f"{option} {out}: is a directory, expected a file name to write")
@@ -326,21 +229,23 @@ def _cmd_certify(args) -> int:
 
     from .scene import read_scene
 
+    from .enclosure.robot_file import load_robot_file
+
     _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves)))
     leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
-    robot, capsules = _load_model(args)
+    robot, capsules = load_robot_file(args.robot)
     scene = read_scene(args.scene, frame=robot.link_names[0])
     log.debug("scene %s: %d boxes", args.scene, scene.n_boxes)
     trajectories = _read_trajectories(args, args.trajectories, robot)
     result = _certify_with_progress(args, trajectories, scene, robot, capsules)
     if not args.quiet:
-        print("\n".join(_table(result)))
+        print("\n".join(table_lines(result)))
     if args.json:
-        _write_output(args.json, (json.dumps(_result_json(result, args.scene), indent=2) + "\n").encode(),
+        _write_output(args.json, (json.dumps(result_json(result, args.scene), indent=2) + "\n").encode(),
                       "per-trajectory results")
     if args.leaves:
         n_leaves = sum(len(r.leaves) for r in result)
-        _write_output(args.leaves, _leaves_bytes(result, leaves_fmt), f"{n_leaves} leaves")
+        _write_output(args.leaves, leaves_bytes(result, leaves_fmt), f"{n_leaves} leaves")
     if all(r.certified for r in result):
         return EXIT_OK
     if not args.fail_on_uncertified:
@@ -361,18 +266,19 @@ def _check_image_path(path: Path) -> None:
 
 
 def _cmd_explain(args) -> int:
+    from .enclosure.robot_file import load_robot_file
     from .explain import choose_leaf, describe_leaf, explain, render
     from .scene import read_scene
 
     out = Path(args.output) if args.output else None
     _check_certify_options(args, (("--output", args.output),))
     _check_image_path(out or Path("x.png"))  # fail before the work
-    robot, capsules = _load_model(args)
+    robot, capsules = load_robot_file(args.robot)
     scene = read_scene(args.scene, frame=robot.link_names[0])
     (traj,) = _read_trajectories(args, [args.trajectory], robot)
     result = _certify_with_progress(args, [traj], scene, robot, capsules)[0]
     leaf = choose_leaf(result, args.leaf, at=args.at)
-    ex = explain(robot, capsules, traj, scene, result, args.margin, leaf=leaf)
+    ex = explain(robot, capsules, traj, scene, result, leaf=leaf)
     out = out or Path(f"{result.id}_explain.png")
     try:
         render(ex, robot, capsules, traj, scene, result, out)
@@ -382,7 +288,7 @@ def _cmd_explain(args) -> int:
         status = "CERTIFIED" if result.certified else "UNCERTIFIED"
         pair = f"capsule {leaf.capsule} / box {leaf.box}" if leaf.box else "no boxes"
         print(f"{result.id}: {status}; {describe_leaf(result, leaf)}: t=[{leaf.t0:.4f}, {leaf.t1:.4f}] s "
-              f"(depth {leaf.depth}), {pair}, clearance {_fmt_clearance(leaf.clearance_m)}")
+              f"(depth {leaf.depth}), {pair}, clearance {format_clearance(leaf.clearance_m)}")
         if ex.capsule >= 0:
             c = ex.capsule
             print(f"  axis-to-box distance {ex.distance_m * 1000:.2f} mm vs shell r + margin + motion "
@@ -437,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="force 1 or 2 capsules on a link (repeatable)")
     f.add_argument("--n-capsules", type=int, default=None,
                    help="total capsule count: links that gain most from a split get two")
-    f.add_argument("--padding", type=float, default=0.001, help="padding added to radii, m")
+    f.add_argument("--padding", type=float, default=DEFAULT_PADDING_M, help="padding added to radii, m")
     f.add_argument("--joints", help="comma-separated active joints (default: the trunk chain)")
     f.add_argument("--hold", action="append", metavar="JOINT=VALUE",
                    help="value at which a non-active joint is held (repeatable)")
@@ -454,13 +360,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "(t, <joint>..., <joint>_vel...)")
     c.add_argument("--scene", required=True,
                    help="scene YAML {frame, boxes: [{name, min, max}]} or MoveIt .scene text (boxes)")
-    c.add_argument("--velocities", default="recorded", choices=["recorded", "finite-difference"],
+    c.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
                    help="recorded: use the file's velocities (default; a file without them is "
                         "refused); finite-difference: compute them from the positions (the "
                         "certificate then covers the Hermite curve through those velocities)")
-    c.add_argument("--method", default="larc", choices=["larc", "fine", "coarse", "reference"])
-    c.add_argument("--margin", type=float, default=0.01, help="clearance margin rho, m (default 0.01)")
-    c.add_argument("--max-depth", type=int, default=9, help="maximum bisection depth (default 9)")
+    c.add_argument("--method", default=METHODS[0], choices=METHODS)
+    c.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,
+                   help=f"clearance margin rho, m (default {DEFAULT_MARGIN_M})")
+    c.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
+                   help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     c.add_argument("--robot", help="robot file from `larc fit-capsules` (default: PIPER)")
     c.add_argument("--json", metavar="OUT.json", help="write per-trajectory results as JSON")
     c.add_argument("--leaves", metavar="OUT.parquet",
@@ -481,10 +389,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("trajectory", metavar="TRAJ_FILE", help="one trajectory file (as for certify)")
     e.add_argument("--scene", required=True, help="scene file (as for certify)")
     e.add_argument("--robot", help="robot file from `larc fit-capsules` (default: PIPER)")
-    e.add_argument("--velocities", default="recorded", choices=["recorded", "finite-difference"],
+    e.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
                    help="as for certify")
-    e.add_argument("--margin", type=float, default=0.01, help="clearance margin rho, m (default 0.01)")
-    e.add_argument("--max-depth", type=int, default=9, help="maximum bisection depth (default 9)")
+    e.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,
+                   help=f"clearance margin rho, m (default {DEFAULT_MARGIN_M})")
+    e.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
+                   help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     e.add_argument("--leaf", choices=["first", "worst"], default="first",
                    help="first: the first inconclusive leaf (the one `certify` names), or the "
                         "tightest leaf of a certified trajectory (default); worst: the leaf with "
@@ -492,7 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--at", type=float, metavar="SECONDS", help="draw the leaf containing this time")
     e.add_argument("-o", "--output", metavar="OUT.png",
                    help="image to write (format from the suffix; default ID_explain.png)")
-    e.set_defaults(func=_cmd_explain, method="larc")
+    e.set_defaults(func=_cmd_explain, method=METHODS[0])
     return p
 
 

@@ -1,14 +1,14 @@
 """Pictures that explain a certificate: the interval that blocks it, or its tightest interval.
 
-:func:`explain` takes one trajectory's :class:`~larc_jax.certify.TrajectoryResult` and
+:func:`explain` takes one trajectory's :class:`~larc_jax.results.TrajectoryResult` and
 recomputes, with the NumPy float64 reference kernels, everything the interval test saw on one
-leaf ``I = [t_m - h, t_m + h]``: the capsule segments at the midpoint configuration ``q(t_m)``
-(:func:`~larc_jax.capsules.capsule_segments_np`), the motion radii
-``b_l(I) = h * sum_j a_lj * max_I |qdot_j|`` (:func:`~larc_jax.hermite.speed_max_np`, paper
-eqs. 5-6) and the certificate clearance ``g(I)`` with its capsule/box pair
-(:func:`~larc_jax.certify.interval_clearance_np`). By default (:func:`choose_leaf`) the leaf is
-the *first inconclusive* one of an uncertified trajectory (the one the ``larc certify`` table
-names) or, for a certified one, the leaf with the smallest clearance.
+leaf ``I = [t_m - h, t_m + h]``: the capsule segments at the midpoint configuration ``q(t_m)``,
+the motion radii ``b_l(I) = h * sum_j a_lj * max_I |qdot_j|`` (paper eqs. 5-6) and the
+certificate clearance ``g(I)`` with its capsule/box pair, all from one call of
+:func:`~larc_jax.interval.evaluate_interval_np` with the margin the result carries. By default
+(:func:`choose_leaf`) the leaf is the *first inconclusive* one of an uncertified trajectory (the
+one the ``larc certify`` table names) or, for a certified one, the leaf with the smallest
+clearance.
 
 :func:`render` draws it (matplotlib, Agg backend, imported lazily) as three orthographic views
 (top x-y, side x-z, front y-z) and a clearance timeline. Orthographic views are exact for
@@ -31,11 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .capsules import CapsuleModel, capsule_segments_np
-from .certify import Leaf, TrajectoryResult, interval_clearance_np
+from .enclosure.capsule import CapsuleModel, capsule_segments_np
 from .errors import LarcInputError
-from .hermite import evaluate_np, speed_max_np
+from .hermite import evaluate_np
+from .interval import evaluate_interval_np
 from .io import atomic_write_bytes
+from .results import Leaf, TrajectoryResult
 from .robot import Robot
 from .scene import Scene
 from .trajectory import Trajectory
@@ -147,30 +148,26 @@ def _closest_points(p0, p1, lo, hi, iters: int = 200):
 
 
 def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene,
-            result: TrajectoryResult, margin: float, leaf: Leaf | None = None) -> Explanation:
-    """Recompute the interval test on ``leaf`` (default: ``choose_leaf(result)``) of ``traj``.
+            result: TrajectoryResult, leaf: Leaf | None = None) -> Explanation:
+    """Recompute the interval test on ``leaf`` (default: ``choose_leaf(result)``) of ``traj``,
+    with the margin the certificate used (``result.margin_m``).
 
     ``traj`` must already be in the robot's joint order (``read_trajectory(path, robot)``).
     """
     leaf = leaf or choose_leaf(result)
-    a, b = leaf.t0, leaf.t1
-    t_mid, h = 0.5 * (a + b), 0.5 * (b - a)
-    q_mid, _ = evaluate_np(traj.t, traj.q, traj.qd, t_mid)
-    omega = speed_max_np(traj.t, traj.q, traj.qd, a, b)
-    motion_b = h * (np.asarray(capsules.motion_a, np.float64) @ omega)
-    seg_a, seg_b = capsule_segments_np(robot, capsules, q_mid)
-    g, c, k = interval_clearance_np(robot, capsules, traj, scene, a, b, margin)
+    ev = evaluate_interval_np(robot, capsules, traj, scene, leaf.t0, leaf.t1, result.margin_m)
+    c, k = int(ev.capsule), int(ev.box)
     closest, dist = None, math.nan
     if scene.n_boxes:
-        closest = _closest_points(seg_a[c], seg_b[c], scene.lo[k], scene.hi[k])
+        closest = _closest_points(ev.p_world_a[c], ev.p_world_b[c], scene.lo[k], scene.hi[k])
         dist = float(np.linalg.norm(closest[0] - closest[1]))
     else:
         c = k = -1
     return Explanation(
-        trajectory_id=result.id, certified=result.certified, leaf=leaf, t_mid=t_mid, h=h,
-        q_mid=q_mid, seg_a=seg_a, seg_b=seg_b, radius=np.asarray(capsules.radius, np.float64),
-        motion_b=motion_b, margin_m=float(margin), clearance_m=float(g), capsule=int(c),
-        box=int(k), distance_m=dist, closest=closest,
+        trajectory_id=result.id, certified=result.certified, leaf=leaf, t_mid=float(ev.t_mid), h=float(ev.h),
+        q_mid=ev.q_mid, seg_a=ev.p_world_a, seg_b=ev.p_world_b, radius=np.asarray(capsules.radius, np.float64),
+        motion_b=ev.motion_b, margin_m=float(result.margin_m), clearance_m=float(ev.g), capsule=c,
+        box=k, distance_m=dist, closest=closest,
     )
 
 

@@ -2,7 +2,8 @@
 reading of user files (text, YAML, JSON) that turns every way a file can be bad into one
 :class:`~larc_jax.errors.LarcInputError` line naming the file.
 
-Trajectory and scene readers live in :mod:`larc_jax.trajectory` and :mod:`larc_jax.scene`.
+It also holds the parsers of numbers and vectors that every reader shares
+(:func:`parse_number`, :func:`parse_vector`). Trajectory and scene readers live in :mod:`larc_jax.trajectory` and :mod:`larc_jax.scene`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import tempfile
 import threading
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from .errors import LarcInputError
@@ -23,7 +25,7 @@ from .errors import LarcInputError
 __all__ = [
     "atomic_write_text", "atomic_write_bytes", "atomic_write_json",
     "read_input_text", "parse_yaml_documents", "parse_yaml", "parse_json", "short_repr",
-    "deferred_log", "MAX_INPUT_BYTES",
+    "deferred_log", "parse_number", "parse_vector", "MAX_INPUT_BYTES",
 ]
 
 MAX_INPUT_BYTES = 512 * 2**20
@@ -194,3 +196,39 @@ def parse_json(text: str, source: str):
         raise LarcInputError(f"{source}: not valid JSON (nested too deeply)") from None
     except ValueError as exc:  # JSONDecodeError, or an integer with too many digits
         raise LarcInputError(f"{source}: not valid JSON ({_one_line(exc)})") from None
+
+
+# ----------------------------------------------------------------------------------------------
+# Numbers and vectors in parsed documents (one parser for every reader)
+# ----------------------------------------------------------------------------------------------
+
+
+def parse_number(value, source: str, where: str, *, finite: bool = False) -> float:
+    """A YAML/JSON number as a float; :class:`LarcInputError` ``"<source>: <where> ..."`` for a
+    bool, a string, ``None``, a container or an integer too large for a float (and for NaN or
+    infinity when ``finite``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise LarcInputError(f"{source}: {where} is not a number ({short_repr(value)})")
+    try:
+        out = float(value)
+    except OverflowError:
+        raise LarcInputError(f"{source}: {where} is too large ({short_repr(value)})") from None
+    if finite and not np.isfinite(out):
+        raise LarcInputError(f"{source}: {where} must be finite, got {value!r}")
+    return out
+
+
+def parse_vector(value, n: int, source: str, where: str, *, finite: bool = False,
+                 entries: str = "") -> np.ndarray:
+    """A list of exactly ``n`` numbers as a float64 array (each entry as :func:`parse_number`).
+
+    ``entries`` says what the entries are, for the wrong-length message (e.g. "one per
+    joint_names entry").
+    """
+    if not isinstance(value, (list, tuple)):
+        raise LarcInputError(f"{source}: {where} must be a list of {n} numbers, got {short_repr(value)}")
+    if len(value) != n:
+        raise LarcInputError(
+            f"{source}: {where} has {len(value)} entries, expected {n}" + (f" ({entries})" if entries else ""))
+    return np.array([parse_number(v, source, f"{where}[{i}]", finite=finite) for i, v in enumerate(value)],
+                    dtype=np.float64).reshape(n)

@@ -46,7 +46,7 @@ import numpy as np
 import yaml
 
 from .errors import LarcInputError
-from .io import deferred_log, parse_yaml, read_input_text, short_repr
+from .io import deferred_log, parse_vector, parse_yaml, read_input_text, short_repr
 
 __all__ = ["Scene", "read_scene", "read_moveit_scene", "scene_from_dict", "pad_scenes"]
 
@@ -83,22 +83,6 @@ class Scene:
         return Scene(lo=np.zeros((0, 3)), hi=np.zeros((0, 3)), name=name)
 
 
-def _vec3(value, source: str, where: str) -> np.ndarray:
-    if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise LarcInputError(f"{source}: {where} must be a list of 3 numbers, got {short_repr(value)}")
-    out = np.empty(3)
-    for i, v in enumerate(value):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise LarcInputError(f"{source}: {where}[{i}] is not a number ({short_repr(v)})")
-        try:
-            out[i] = float(v)
-        except OverflowError:
-            raise LarcInputError(f"{source}: {where}[{i}] is too large ({short_repr(v)})") from None
-        if not math.isfinite(out[i]):
-            raise LarcInputError(f"{source}: {where}[{i}] must be finite, got {v!r}")
-    return out
-
-
 def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str | None = None) -> Scene:
     """Build a scene from a parsed YAML mapping; ``frame`` (if given) is the required frame."""
     if not isinstance(doc, dict):
@@ -131,8 +115,8 @@ def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str 
         for key in ("min", "max"):
             if key not in box:
                 raise LarcInputError(f"{source}: {where}.{key} is missing")
-        b_lo = _vec3(box["min"], source, f"{where}.min")
-        b_hi = _vec3(box["max"], source, f"{where}.max")
+        b_lo = parse_vector(box["min"], 3, source, f"{where}.min", finite=True)
+        b_hi = parse_vector(box["max"], 3, source, f"{where}.max", finite=True)
         if (b_lo > b_hi).any():
             i = int(np.flatnonzero(b_lo > b_hi)[0])
             raise LarcInputError(

@@ -16,20 +16,20 @@ if "LARC_PIPER_DESCRIPTION" not in os.environ and _SHARED.is_dir():
 
 @pytest.fixture(scope="session")
 def piper_dir() -> Path:
-    from larc_jax.robot import piper_description_dir
+    from larc_jax.urdf import piper_description_dir
 
     return piper_description_dir()
 
 
 @pytest.fixture(scope="session")
 def robot():
-    from larc_jax.robot import load_robot
+    from larc_jax.urdf import load_robot
 
     return load_robot()
 
 
 @pytest.fixture(scope="session")
 def capsules(robot):
-    from larc_jax.capsules import default_capsule_path, load_capsules
+    from larc_jax.enclosure import default_capsule_path, load_capsules
 
     return load_capsules(default_capsule_path(), robot)

@@ -11,16 +11,9 @@ import pytest
 import yaml
 
 from larc_jax import LarcInputError
-from larc_jax.capsules import (
-    _point_segment_distance,
-    capsule_segments,
-    capsule_segments_np,
-    default_capsule_path,
-    link_elements,
-    load_capsules,
-    verify_containment,
-)
-from larc_jax.robot import file_sha256
+from larc_jax.enclosure.fit import point_segment_distance
+from larc_jax.enclosure import capsule_segments, capsule_segments_np, default_capsule_path, link_elements, load_capsules, verify_containment
+from larc_jax.urdf import file_sha256
 
 
 def test_committed_file_matches_urdf(robot):
@@ -45,7 +38,7 @@ def test_containment_reproven_from_meshes(robot, capsules):
         for c, l in enumerate(capsules.link_names):
             if l == link:
                 core = capsules.radius[c] - capsules.padding_m
-                d = _point_segment_distance(elems, np.asarray(capsules.p_link_a[c]), np.asarray(capsules.p_link_b[c]))
+                d = point_segment_distance(elems, np.asarray(capsules.p_link_a[c]), np.asarray(capsules.p_link_b[c]))
                 ok |= (d <= core).all(axis=1)
         assert ok.all(), link
 
@@ -59,7 +52,7 @@ def test_finger_capsule_holds_whole_stroke(robot, capsules):
     assert elems.shape == (len(plain.faces), 9, 3)
     c = capsules.names.index("link7")
     stroke_end = plain.vertices + np.array([0.0, 0.0, -1.0]) * -0.038  # axis (0,0,-1), q = -0.038
-    d = _point_segment_distance(stroke_end, np.asarray(capsules.p_link_a[c]), np.asarray(capsules.p_link_b[c]))
+    d = point_segment_distance(stroke_end, np.asarray(capsules.p_link_a[c]), np.asarray(capsules.p_link_b[c]))
     assert d.max() <= capsules.radius[c]
 
 

@@ -10,8 +10,9 @@ import pytest
 from scipy.interpolate import CubicHermiteSpline
 
 from larc_jax import LarcInputError
-from larc_jax.capsules import capsule_segments_np
-from larc_jax.certify import certify, interval_clearance, interval_clearance_np, rounding_guard
+from larc_jax.enclosure import capsule_segments_np
+from larc_jax.certify import certify
+from larc_jax.interval import interval_clearance, interval_clearance_np, rounding_guard
 from larc_jax.geometry import segment_box_distance_np
 from larc_jax.hermite import HermiteSpline
 from larc_jax.scene import Scene, pad_scenes

@@ -284,7 +284,7 @@ def test_explain_recomputes_the_interval_test(robot, capsules):
         result = lj.certify([traj], scene, robot, capsules, margin=0.01)[0]
         for which in ("first", "worst"):
             leaf = choose_leaf(result, which)
-            ex = explain(robot, capsules, traj, scene, result, 0.01, leaf=leaf)
+            ex = explain(robot, capsules, traj, scene, result, leaf=leaf)
             assert ex.clearance_m == pytest.approx(leaf.clearance_m, abs=1e-12)
             assert capsules.names[ex.capsule] == leaf.capsule and scene.box_names[ex.box] == leaf.box
             assert ex.distance_m - ex.shell_radius[ex.capsule] == pytest.approx(ex.clearance_m, abs=1e-9)

@@ -117,7 +117,7 @@ def write(path: Path, content) -> None:
 
 
 def robot_doc(**changes) -> dict:
-    from larc_jax.robot import piper_urdf_path
+    from larc_jax.urdf import piper_urdf_path
 
     doc = yaml.safe_load((ROOT / "configs" / "piper_capsules.yaml").read_text())
     doc = {"urdf": str(piper_urdf_path()), **doc}

@@ -48,7 +48,7 @@ def test_protocol_file(config):
 
 
 def test_generation_writes_valid_files(generated, robot, config):
-    from larc_jax.trajectory import read_trajectory
+    from larc_jax.trajectory_files import read_trajectory
 
     out, summary = generated
     assert summary["n_pairs_accepted"] == 1
@@ -89,7 +89,7 @@ def test_accepted_trajectory_passes_audit(generated, robot, config):
     from experiments.audit import audit_trajectory
     from experiments.collision import CollisionModel, SceneBoxes
     from experiments.self_collision import load_allowed_pairs
-    from larc_jax.trajectory import read_trajectory
+    from larc_jax.trajectory_files import read_trajectory
 
     out, _ = generated
     model = CollisionModel(robot)

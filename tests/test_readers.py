@@ -13,12 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from larc_jax.errors import LarcInputError
 from larc_jax.scene import read_moveit_scene, read_scene
-from larc_jax.trajectory import (
-    finite_difference_velocities,
-    read_trajectory,
-    trajectory_from_msg,
-    write_trajectory,
-)
+from larc_jax.trajectory import finite_difference_velocities
+from larc_jax.trajectory_files import read_trajectory, trajectory_from_msg, write_trajectory
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
 NAMES = [f"joint{i}" for i in range(1, 7)]
@@ -346,7 +342,7 @@ def test_csv_errors_name_file_line_column(tmp_path, robot, head, rows, needle):
 
 
 def test_waypoint_limit_applies_to_csv_and_yaml(tmp_path, robot, monkeypatch):
-    import larc_jax.trajectory as tr
+    import larc_jax.trajectory_files as tr
 
     monkeypatch.setattr(tr, "MAX_WAYPOINTS", 2)
     with pytest.raises(LarcInputError, match="more than 2 waypoints"):

@@ -11,7 +11,8 @@ import pytest
 import yourdfpy
 
 from larc_jax import LarcInputError
-from larc_jax.robot import JointType, forward_kinematics, forward_kinematics_np, load_robot
+from larc_jax.robot import JointType, forward_kinematics, forward_kinematics_np
+from larc_jax.urdf import load_robot
 
 
 def test_piper_structure(robot):
@@ -91,7 +92,7 @@ def test_unknown_joint_and_missing_file(robot, tmp_path):
 
 
 def test_env_var_resolution(monkeypatch, tmp_path):
-    from larc_jax.robot import piper_description_dir
+    from larc_jax.urdf import piper_description_dir
 
     monkeypatch.setenv("LARC_PIPER_DESCRIPTION", str(tmp_path))
     with pytest.raises(LarcInputError, match="LARC_PIPER_DESCRIPTION"):

@@ -1,0 +1,46 @@
+"""Defaults and choices shared by the library and the command line (no JAX import here, so the
+CLI can build its parser without loading JAX). Each parameter has this one owner."""
+
+from __future__ import annotations
+
+__all__ = [
+    "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "MAX_DEPTH_LIMIT",
+    "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "check_margin", "check_depth",
+]
+
+DEFAULT_MARGIN_M = 0.01
+"""Clearance margin ρ, m (the paper's 10 mm)."""
+DEFAULT_MAX_DEPTH = 9
+"""Deepest bisection: leaves of T / 2**9 = T / 512 (the paper's fixed-fine resolution)."""
+DEFAULT_COARSE_DEPTH = 4
+"""Depth of the fixed-coarse baseline: 16 intervals."""
+MAX_DEPTH_LIMIT = 20
+"""Largest accepted ``max_depth`` (2**20 leaves per trajectory)."""
+METHODS = ("larc", "fine", "coarse", "reference")
+"""``larc`` (batched adaptive), ``fine`` / ``coarse`` (every interval of depth ``max_depth`` /
+``DEFAULT_COARSE_DEPTH``), ``reference`` (the paper's Algorithm 1 in NumPy)."""
+VELOCITY_MODES = ("recorded", "finite-difference")
+"""``recorded``: use the file's velocities (refuse a file without them); ``finite-difference``:
+compute them from the positions (:func:`larc_jax.trajectory.finite_difference_velocities`)."""
+DEFAULT_PADDING_M = 0.001
+"""Padding added to fitted capsule radii on top of the proven containment, m."""
+
+
+def check_margin(margin, what: str = "margin") -> float:
+    """ρ as a float: a finite number > 0 (paper eq. 3); else :class:`LarcInputError` naming ``what``."""
+    import math
+
+    from .errors import LarcInputError
+
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not (math.isfinite(margin) and margin > 0):
+        raise LarcInputError(f"{what} {margin!r}: must be a finite number > 0 m (the clearance margin rho, paper eq. 3)")
+    return float(margin)
+
+
+def check_depth(depth, what: str = "max_depth") -> int:
+    """A bisection depth: an integer in 0..MAX_DEPTH_LIMIT; else :class:`LarcInputError`."""
+    from .errors import LarcInputError
+
+    if isinstance(depth, bool) or not isinstance(depth, int) or not 0 <= depth <= MAX_DEPTH_LIMIT:
+        raise LarcInputError(f"{what} {depth!r}: must be an integer in 0..{MAX_DEPTH_LIMIT}")
+    return depth

@@ -1,0 +1,79 @@
+"""The capsule model of a robot's links, and its placement at a configuration.
+
+A capsule is the set of points within ``radius`` of a segment ``[p_link_a, p_link_b]`` given in
+its link's frame: convex, and placed by one rigid transform (the link pose from forward
+kinematics). :func:`capsule_segments` is the JAX kernel for one configuration (batch it with
+``jax.vmap``); :func:`capsule_segments_np` its NumPy float64 reference. Why the capsules enclose
+the link meshes is proven in :mod:`larc_jax.enclosure.fit`; the motion constants ``motion_a``
+are derived in :mod:`larc_jax.enclosure.motion`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..robot import Robot, forward_kinematics, forward_kinematics_np
+
+__all__ = ["CapsuleModel", "capsule_segments", "capsule_segments_np"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CapsuleModel:
+    """Capsules attached to links, with their motion constants.
+
+    Each capsule is the set of points within ``radius`` of the segment ``[p_link_a, p_link_b]``
+    given in its link's frame.
+    """
+
+    p_link_a: jax.Array
+    """(C, 3) first segment endpoint in the link frame, m."""
+    p_link_b: jax.Array
+    """(C, 3) second segment endpoint in the link frame, m."""
+    radius: jax.Array
+    """(C,) capsule radius including padding, m."""
+    motion_a: jax.Array
+    """(C, n) a_lj: bound on the distance from active joint j's axis to any capsule point over
+    all configurations within the limits, m (1 for prismatic joints: m/m)."""
+
+    names: tuple[str, ...] = dataclasses.field(metadata=dict(static=True))
+    link_names: tuple[str, ...] = dataclasses.field(metadata=dict(static=True))
+    link_index: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
+    """Robot link index carrying each capsule."""
+    padding_m: float = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def n_capsules(self) -> int:
+        return len(self.names)
+
+
+def capsule_segments(robot: Robot, capsules: CapsuleModel, q: jax.Array):
+    """World-frame capsule segments at one configuration.
+
+    Args:
+      q: (n,) active joint values.
+
+    Returns:
+      (p_world_a, p_world_b), each (C, 3) in metres.
+    """
+    T_world_link = forward_kinematics(robot, q)
+    T = T_world_link[jnp.asarray(capsules.link_index)]  # (C, 4, 4)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    a = jnp.einsum("cij,cj->ci", R, capsules.p_link_a.astype(R.dtype)) + t
+    b = jnp.einsum("cij,cj->ci", R, capsules.p_link_b.astype(R.dtype)) + t
+    return a, b
+
+
+def capsule_segments_np(robot: Robot, capsules: CapsuleModel, q: np.ndarray):
+    """NumPy float64 reference of :func:`capsule_segments`."""
+    T_world_link = forward_kinematics_np(robot, q)
+    out_a, out_b = [], []
+    for c, li in enumerate(capsules.link_index):
+        T = T_world_link[li]
+        out_a.append(T[:3, :3] @ np.asarray(capsules.p_link_a[c], np.float64) + T[:3, 3])
+        out_b.append(T[:3, :3] @ np.asarray(capsules.p_link_b[c], np.float64) + T[:3, 3])
+    return np.array(out_a), np.array(out_b)

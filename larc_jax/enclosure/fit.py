@@ -1,0 +1,234 @@
+"""Fitting capsules to the link meshes, and the containment proof.
+
+Containment (paper eq. 2 at zero motion). A capsule is the set of points within ``radius`` of a
+segment, hence convex. The collision geometry of a link is split into elements
+(:func:`~larc_jax.enclosure.meshes.link_elements`: mesh triangles, or primitives replaced by a
+circumscribed polyhedron). An element lies in a capsule iff each of its vertices does
+(convexity), so checking every vertex (:func:`verify_containment`) proves that the whole mesh
+lies in the union of the link's capsules. Fitting and checking use ``radius - padding``: the
+stored radius carries ``padding_m`` of extra margin on top. Radii are rounded *up* to the
+micrometre from the endpoints the file will hold, so the file itself is what is proven.
+
+Fitting (:func:`fit_capsules`): a minimum-volume capsule around the convex hull of each link's
+vertices (Nelder-Mead from the three principal directions); optionally two capsules per link,
+its elements split whole (never clipped) along the principal axis at the cut that minimises the
+total volume.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from ..errors import LarcInputError
+from ..robot import Robot
+from .capsule import CapsuleModel
+from .meshes import link_elements
+
+__all__ = ["FittedCapsule", "fit_capsules", "verify_containment", "point_segment_distance"]
+
+_ROUND = 1e-6  # radii are rounded *up* to the micrometre (endpoints are stored to it).
+
+
+def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances of points ``p`` (..., 3) to the segment [a, b], float64."""
+    d = b - a
+    dd = float(d @ d)
+    t = np.zeros(p.shape[:-1]) if dd == 0.0 else np.clip(((p - a) @ d) / dd, 0.0, 1.0)
+    return np.linalg.norm(p - a - t[..., None] * d, axis=-1)
+
+
+def _capsule_volume(length: float, r: float) -> float:
+    return math.pi * r * r * length + 4.0 / 3.0 * math.pi * r**3
+
+
+def _hull_points(points: np.ndarray) -> np.ndarray:
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.unique(points.reshape(-1, 3), axis=0)
+    try:
+        return pts[ConvexHull(pts).vertices]
+    except (QhullError, ValueError):
+        return pts  # degenerate (flat) sets: every point is kept, still exact
+
+
+def _hull_volume(points: np.ndarray) -> float:
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return float(ConvexHull(np.unique(points.reshape(-1, 3), axis=0)).volume)
+    except (QhullError, ValueError):
+        return 0.0
+
+
+def _fit_one(points: np.ndarray, maxiter: int = 3000) -> tuple[np.ndarray, np.ndarray, float]:
+    """Minimum-volume capsule (core radius, no padding) around ``points`` (hull vertices)."""
+    from scipy.optimize import minimize
+
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
+
+    def volume(x: np.ndarray) -> float:
+        a, b = x[:3], x[3:]
+        return _capsule_volume(float(np.linalg.norm(b - a)), float(point_segment_distance(points, a, b).max()))
+
+    best = None
+    for u in vt:  # a start along each principal direction
+        s = (points - centre) @ u
+        r0 = float(np.linalg.norm((points - centre) - np.outer(s, u), axis=1).max())
+        half = max(0.0, (s.max() - s.min()) / 2 - r0 * 0.5)
+        mid = centre + u * (s.max() + s.min()) / 2
+        x0 = np.concatenate([mid - half * u, mid + half * u])
+        res = minimize(volume, x0, method="Nelder-Mead",
+                       options=dict(maxiter=maxiter, xatol=1e-6, fatol=1e-12))
+        if best is None or res.fun < best.fun:
+            best = res
+    return best.x[:3], best.x[3:], volume(best.x)
+
+
+def _split_parts(elements: np.ndarray, cut_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Split elements (whole, never clipped) by their centroid along the principal axis."""
+    c = elements.mean(axis=1)
+    centre = c.mean(axis=0)
+    _, _, vt = np.linalg.svd(c - centre, full_matrices=False)
+    s = (c - centre) @ vt[0]
+    cut = np.quantile(s, cut_fraction)
+    mask = s <= cut
+    return mask, ~mask
+
+
+@dataclasses.dataclass
+class FittedCapsule:
+    name: str
+    link: str
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+    volume_m3: float
+    hull_volume_m3: float
+    n_elements: int
+
+
+def _finalise(name, link, elems, a, b, padding) -> FittedCapsule:
+    # Store endpoints to the micrometre, then take the radius from the *stored* endpoints so the
+    # file itself is what containment is proven for; round the radius up, never down.
+    a = np.array([round(float(x), 6) for x in a])  # exactly the values the file will hold
+    b = np.array([round(float(x), 6) for x in b])
+    core = float(point_segment_distance(elems.reshape(-1, 3), a, b).max())
+    radius = round(math.ceil((core + padding) / _ROUND) * _ROUND, 6)
+    while radius - padding < core:  # the decimal the file holds must not undercut the proof
+        radius = round(radius + _ROUND, 6)
+    return FittedCapsule(
+        name, link, a, b, radius,
+        _capsule_volume(float(np.linalg.norm(b - a)), radius),
+        _hull_volume(elems), len(elems),
+    )
+
+
+def fit_capsules(
+    robot: Robot,
+    *,
+    n_capsules: int | None = None,
+    capsules_per_link: Mapping[str, int] | None = None,
+    padding_m: float = 0.001,
+    links: Sequence[str] | None = None,
+    progress=None,
+) -> list[FittedCapsule]:
+    """Fit minimum-volume capsules to every link with collision geometry.
+
+    Each link gets one capsule; links listed in ``capsules_per_link`` with 2 get two, as do the
+    links that gain most volume from a split until ``n_capsules`` is reached. With two capsules
+    the link's elements (triangles) are split whole along the principal axis, at the cut that
+    minimises the total volume.
+    """
+    per_link = dict(capsules_per_link or {})
+    for k, v in per_link.items():
+        if v not in (1, 2):
+            raise LarcInputError(f"capsules_per_link: link '{k}' asks for {v} capsules (1 or 2)")
+    names = list(links) if links is not None else list(robot.link_names)
+    elements = {}
+    for link in names:
+        e = link_elements(robot, link)
+        if len(e):
+            elements[link] = e
+    if not elements:
+        raise LarcInputError(f"{robot.urdf_path}: no link has collision geometry")
+
+    single, double = {}, {}
+    for link, e in elements.items():
+        if progress:
+            progress(f"fitting {link}")
+        hull = _hull_points(e)
+        single[link] = _fit_one(hull)
+        if per_link.get(link, 2 if n_capsules else 1) == 2:
+            best = None
+            for frac in (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8):
+                m1, m2 = _split_parts(e, frac)
+                f1 = _fit_one(_hull_points(e[m1]), maxiter=600)
+                f2 = _fit_one(_hull_points(e[m2]), maxiter=600)
+                if best is None or f1[2] + f2[2] < best[0]:
+                    best = (f1[2] + f2[2], frac)
+            m1, m2 = _split_parts(e, best[1])
+            double[link] = (m1, m2, _fit_one(_hull_points(e[m1])), _fit_one(_hull_points(e[m2])))
+
+    split = {l for l, v in per_link.items() if v == 2}
+    if n_capsules is not None:
+        budget = n_capsules - len(elements) - len(split)
+        if budget < 0 or budget > len(elements) - len(split):
+            raise LarcInputError(
+                f"cannot fit {n_capsules} capsules to {len(elements)} links with collision geometry"
+            )
+        gains = sorted(
+            ((single[l][2] - double[l][2][2] - double[l][3][2], l) for l in double
+             if l not in split and per_link.get(l) != 1),
+            reverse=True,
+        )
+        split |= {l for _, l in gains[:budget]}
+
+    out = []
+    for link, e in elements.items():
+        if link in split:
+            m1, m2, f1, f2 = double[link]
+            out.append(_finalise(f"{link}_a", link, e[m1], f1[0], f1[1], padding_m))
+            out.append(_finalise(f"{link}_b", link, e[m2], f2[0], f2[1], padding_m))
+        else:
+            a, b, _ = single[link]
+            out.append(_finalise(link, link, e, a, b, padding_m))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Containment check
+# ----------------------------------------------------------------------------------------------
+
+
+def verify_containment(robot: Robot, capsules: CapsuleModel, *, source: str = "capsule file") -> dict:
+    """Prove that every collision element of every link lies inside one of its link's capsules
+    shrunk by the padding. Raises :class:`LarcInputError` naming the link and element otherwise.
+
+    Returns ``{link: number of elements checked}``.
+    """
+    checked = {}
+    for link in dict.fromkeys(capsules.link_names):
+        elems = link_elements(robot, link)
+        idx = [c for c, l in enumerate(capsules.link_names) if l == link]
+        inside = np.zeros(len(elems), bool)
+        for c in idx:
+            a = np.asarray(capsules.p_link_a[c], np.float64)
+            b = np.asarray(capsules.p_link_b[c], np.float64)
+            core = float(capsules.radius[c]) - capsules.padding_m
+            inside |= (point_segment_distance(elems, a, b) <= core).all(axis=1)
+        if not inside.all():
+            bad = int(np.flatnonzero(~inside)[0])
+            raise LarcInputError(
+                f"{source}: link '{link}' element {bad} (of {len(elems)}) is not inside any of "
+                f"its capsules {[capsules.names[c] for c in idx]} shrunk by the padding"
+            )
+        checked[link] = len(elems)
+    for i, link in enumerate(robot.link_names):
+        if link not in checked and len(link_elements(robot, link)):
+            raise LarcInputError(f"{source}: link '{link}' has collision geometry but no capsule")
+    return checked

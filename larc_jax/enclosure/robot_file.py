@@ -1,0 +1,215 @@
+"""The robot file (capsule file): the one reader and writer of its format.
+
+Written by ``larc fit-capsules`` (:func:`save_capsules`), read by :func:`load_capsules` (the
+capsules for a given robot) and :func:`load_robot_file` (the robot *and* its capsules, from the
+file's ``urdf``, ``package_dirs``, ``active_joints`` and ``held_joints`` fields: what
+``larc certify --robot FILE`` uses). Relative paths in the file are relative to its folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import yaml
+
+from ..errors import LarcInputError
+from ..io import atomic_write_text, parse_number, parse_vector, parse_yaml, read_input_text, short_repr
+from ..robot import JointType, Robot
+from .capsule import CapsuleModel
+from .fit import FittedCapsule
+from .motion import motion_constants
+
+__all__ = ["save_capsules", "load_capsules", "load_robot_file", "default_capsule_path", "MODEL_REVISION"]
+
+MODEL_REVISION = "larc-capsules-1"
+
+
+def default_capsule_path() -> Path:
+    """``configs/piper_capsules.yaml`` of this project checkout."""
+    return Path(__file__).resolve().parent.parent.parent / "configs" / "piper_capsules.yaml"
+
+
+def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[FittedCapsule], *,
+                  padding_m: float, urdf: str | None = None,
+                  package_dirs: Mapping[str, str] | None = None) -> None:
+    """Write the capsule file atomically.
+
+    ``urdf`` and ``package_dirs`` (written only when ``urdf`` is given) let ``larc certify
+    --robot FILE`` rebuild the robot; relative paths there are relative to the file's folder.
+    """
+    held = {
+        robot.joint_names[i]: float(robot.q_held[i])
+        for i in range(1, robot.n_links)
+        if robot.q_index[i] < 0 and robot.joint_type[i] != JointType.FIXED
+    }
+    finger_joints = [j for j in held if robot.joint_type[robot.joint_names.index(j)] == JointType.PRISMATIC]
+    doc = {
+        "urdf_sha256": robot.urdf_sha256,
+        "padding_m": padding_m,
+        "revision": MODEL_REVISION,
+        "gripper_opening_m": float(sum(abs(held[j]) for j in finger_joints)) if finger_joints else None,
+        "active_joints": list(robot.active_joint_names),
+        "held_joints": held,
+        "held_prismatic_stroke_enclosed": True,
+        "capsules": [
+            {
+                "name": f.name,
+                "link": f.link,
+                "a": [round(float(x), 6) for x in f.a],
+                "b": [round(float(x), 6) for x in f.b],
+                "radius": round(f.radius, 6),
+                "volume_m3": float(f"{f.volume_m3:.6g}"),
+                "hull_volume_m3": float(f"{f.hull_volume_m3:.6g}"),
+            }
+            for f in fitted
+        ],
+    }
+    if urdf is not None:
+        extra = {"package_dirs": dict(package_dirs)} if package_dirs else {}
+        doc = {"urdf": urdf, **extra, **doc}
+    header = (
+        "# Capsules fitted by `larc fit-capsules`; containment of every collision-mesh vertex is\n"
+        "# proven at load time by the tests. Link frames, metres; radius includes padding_m.\n"
+    )
+    atomic_write_text(path, header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))
+
+
+def _field(doc: Mapping, key: str, source: str, where: str = ""):
+    if key not in doc:
+        raise LarcInputError(f"{source}: missing field '{where}{key}'")
+    return doc[key]
+
+
+_MAX_CAPSULE_M = 1e6
+"""Capsule coordinates and radii beyond this (m) are refused as implausible (squares overflow)."""
+
+
+def _vec3(value, source: str, where: str) -> np.ndarray:
+    v = parse_vector(value, 3, source, where, finite=True)
+    if np.abs(v).max() > _MAX_CAPSULE_M:
+        raise LarcInputError(f"{source}: {where} = {short_repr(value)} is beyond {_MAX_CAPSULE_M:g} m of its link frame")
+    return v
+
+
+def load_capsules(path: str | Path, robot: Robot, *, check_hash: bool = True) -> CapsuleModel:
+    """Read a capsule file for ``robot`` and compute its motion constants.
+
+    Fails with :class:`LarcInputError` if the file was fitted to another URDF (hash mismatch),
+    names unknown links, or holds malformed numbers.
+    """
+    path = Path(path)
+    source = str(path)
+    doc = parse_yaml(read_input_text(path, "capsule file"), source)
+    if not isinstance(doc, dict):
+        raise LarcInputError(f"{source}: expected a mapping with 'capsules'")
+    if check_hash and _field(doc, "urdf_sha256", source) != robot.urdf_sha256:
+        raise LarcInputError(
+            f"{source}: fitted to a URDF with sha256 {short_repr(doc['urdf_sha256'])}, but {robot.urdf_path} "
+            f"has sha256 {robot.urdf_sha256}; refit with `larc fit-capsules {robot.urdf_path} -o {source}`"
+        )
+    padding = parse_number(_field(doc, "padding_m", source), source, "padding_m")
+    if not (np.isfinite(padding) and padding >= 0):
+        raise LarcInputError(f"{source}: padding_m must be a finite number >= 0")
+    active = doc.get("active_joints")
+    if active is not None and (not isinstance(active, list) or active != list(robot.active_joint_names)):
+        raise LarcInputError(
+            f"{source}: active_joints {short_repr(active)} differ from the robot's {list(robot.active_joint_names)}"
+        )
+    held = doc.get("held_joints") or {}
+    if not isinstance(held, dict):
+        raise LarcInputError(f"{source}: held_joints must be a mapping JOINT: VALUE")
+    if "held_joints" in doc:
+        # The capsules of links on held joints are valid at the recorded values only: every
+        # joint the robot holds must be recorded (and equal, below).
+        for i in range(1, robot.n_links):
+            jname = robot.joint_names[i]
+            if robot.q_index[i] < 0 and robot.joint_type[i] != JointType.FIXED and jname not in held:
+                raise LarcInputError(
+                    f"{source}: held_joints does not record joint '{jname}', which the robot holds "
+                    f"at {float(robot.q_held[i])}"
+                )
+    for jname, value in held.items():
+        if jname not in robot.joint_names:
+            raise LarcInputError(f"{source}: held_joints names unknown joint '{jname}'")
+        i = robot.joint_names.index(jname)
+        value = parse_number(value, source, f"held_joints.{jname}")
+        if not abs(float(robot.q_held[i]) - value) <= 1e-12:
+            raise LarcInputError(
+                f"{source}: held_joints.{jname} = {value} but the robot holds it at {float(robot.q_held[i])}"
+            )
+    entries = _field(doc, "capsules", source)
+    if not isinstance(entries, list) or not entries:
+        raise LarcInputError(f"{source}: 'capsules' must be a non-empty list")
+    names, links, idx, A, B, R = [], [], [], [], [], []
+    for k, e in enumerate(entries):
+        where = f"capsules[{k}]"
+        if not isinstance(e, dict):
+            raise LarcInputError(f"{source}: {where} must be a mapping")
+        link = _field(e, "link", source, where + ".")
+        if not isinstance(link, str):
+            raise LarcInputError(f"{source}: {where}.link must be a link name, got {short_repr(link)}")
+        if link not in robot.link_names:
+            raise LarcInputError(f"{source}: {where}.link '{link}' is not a link of {robot.urdf_path}")
+        r = parse_number(e.get("radius"), source, f"{where}.radius")
+        if not np.isfinite(r) or r <= padding or r > _MAX_CAPSULE_M:
+            raise LarcInputError(
+                f"{source}: {where}.radius must be a finite number > padding_m and <= {_MAX_CAPSULE_M:g} m, got {r!r}")
+        name = e.get("name", f"{link}_{k}")
+        if not isinstance(name, (str, int)) or isinstance(name, bool):
+            raise LarcInputError(f"{source}: {where}.name must be a string, got {short_repr(name)}")
+        names.append(str(name))
+        links.append(link)
+        idx.append(robot.link_names.index(link))
+        A.append(_vec3(_field(e, "a", source, where + "."), source, where + ".a"))
+        B.append(_vec3(_field(e, "b", source, where + "."), source, where + ".b"))
+        R.append(float(r))
+    A, B, R = np.array(A), np.array(B), np.array(R)
+    return CapsuleModel(
+        p_link_a=A,
+        p_link_b=B,
+        radius=R,
+        motion_a=motion_constants(robot, idx, A, B, R),
+        names=tuple(names),
+        link_names=tuple(links),
+        link_index=tuple(idx),
+        padding_m=padding,
+    )
+
+
+def load_robot_file(path: str | Path | None = None) -> tuple[Robot, CapsuleModel]:
+    """The robot and its capsules from a robot file written by ``larc fit-capsules`` (its
+    ``urdf``, ``package_dirs``, ``active_joints`` and ``held_joints`` fields rebuild the robot);
+    ``None``: PIPER (``LARC_PIPER_DESCRIPTION``) with the shipped capsule file."""
+    from ..urdf import load_robot
+
+    if path is None:
+        robot = load_robot()
+        return robot, load_capsules(default_capsule_path(), robot)
+    path = Path(path)
+    doc = parse_yaml(read_input_text(path, "robot file"), str(path))
+    if doc is None:
+        raise LarcInputError(f"{path}: robot file is empty")
+    if not isinstance(doc, dict) or "urdf" not in doc:
+        raise LarcInputError(f"{path}: missing field 'urdf' (write it with `larc fit-capsules URDF -o FILE`)")
+    if not isinstance(doc["urdf"], str) or not doc["urdf"]:
+        raise LarcInputError(f"{path}: urdf must be a file path, got {short_repr(doc['urdf'])}")
+    urdf = Path(doc["urdf"])
+    if not urdf.is_absolute():
+        urdf = path.parent / urdf
+    dirs = doc.get("package_dirs") or {}
+    if not isinstance(dirs, dict) or not all(isinstance(v, str) for v in dirs.values()):
+        raise LarcInputError(f"{path}: package_dirs must be a mapping NAME: FOLDER, got {short_repr(dirs)}")
+    dirs = {str(k): str(path.parent / str(v)) for k, v in dirs.items()}  # relative to the file
+    active = doc.get("active_joints")
+    if active is not None and not (isinstance(active, list) and all(isinstance(n, str) for n in active)):
+        raise LarcInputError(f"{path}: active_joints must be a list of joint names, got {short_repr(active)}")
+    held = doc.get("held_joints") or {}
+    if not isinstance(held, dict):
+        raise LarcInputError(f"{path}: held_joints must be a mapping JOINT: VALUE, got {short_repr(held)}")
+    for name, value in held.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
+            raise LarcInputError(f"{path}: held_joints.{name} must be a finite number, got {short_repr(value)}")
+    robot = load_robot(urdf, dirs, active_joints=active, held_joint_values=held)
+    return robot, load_capsules(path, robot)

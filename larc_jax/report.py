@@ -1,0 +1,68 @@
+"""Human- and machine-readable reports of a certification result: the terminal table, the
+per-trajectory JSON document and the leaf table (Parquet or CSV bytes). Used by the command
+line; usable from Python (:func:`table_lines`, :func:`result_json`, :func:`leaves_bytes`)."""
+
+from __future__ import annotations
+
+import io
+import math
+
+from .results import DatasetResult
+
+__all__ = ["format_clearance", "table_lines", "result_json", "leaves_bytes"]
+
+
+def format_clearance(g: float) -> str:
+    if g != g:
+        return "nan"
+    if g == float("inf"):
+        return "inf (no boxes)"
+    return f"{g * 1000:+.2f} mm"
+
+
+def table_lines(result: DatasetResult) -> list[str]:
+    """The terminal table: one row per trajectory, then a summary line."""
+    width = max([len("trajectory")] + [len(r.id) for r in result])
+    head = (f"{'trajectory':<{width}}  {'status':<11}  {'evals':>6}  {'min clearance':>14}  "
+            "first inconclusive interval: time span, capsule / box")
+    lines = [head]
+    for r in result:
+        bad = r.first_inconclusive
+        blocked = f"t=[{bad.t0:.4f}, {bad.t1:.4f}] s  {bad.capsule or '-'} / {bad.box or '-'}" if bad else ""
+        lines.append(f"{r.id:<{width}}  {'CERTIFIED' if r.certified else 'UNCERTIFIED':<11}  "
+                     f"{r.evaluations:>6}  {format_clearance(r.min_clearance_m):>14}  {blocked}".rstrip())
+    n_ok = sum(r.certified for r in result)
+    lines.append(f"{n_ok} of {len(result)} certified ({result.method}, margin {result.margin_m * 1000:g} mm, "
+                 f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s)")
+    return lines
+
+
+def result_json(result: DatasetResult, scene_path) -> dict:
+    def num(x):
+        return x if math.isfinite(x) else None
+
+    return {
+        "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
+        "scene": str(scene_path),
+        "frontier_sizes": list(result.frontier_sizes),
+        "trajectories": [
+            {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
+             "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
+             "first_inconclusive": (
+                 {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
+                  "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,
+                  "clearance_m": num(r.first_inconclusive.clearance_m)}
+                 if r.first_inconclusive else None)}
+            for r in result
+        ],
+    }
+
+
+def leaves_bytes(result: DatasetResult, fmt: str) -> bytes:
+    """The leaf table as ``csv`` or ``parquet`` bytes."""
+    df = result.leaves_dataframe()
+    if fmt == "csv":
+        return df.to_csv(index=False).encode("utf-8")  # floats as shortest round-trip repr
+    buf = io.BytesIO()
+    df.to_parquet(buf, index=False)
+    return buf.getvalue()
