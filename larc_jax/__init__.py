@@ -26,9 +26,10 @@ from .errors import LarcInputError
 from .geometry import segment_box_distance, segment_box_distances
 from .hermite import HermiteSpline, speed_max
 from .interval import IntervalEval, evaluate_interval, interval_clearance
-from .results import DatasetResult, Leaf, TrajectoryResult
+from .results import DatasetResult, Leaf, LeafTable, TrajectoryResult
 from .robot import JointType, Robot, forward_kinematics
 from .scene import Scene, read_moveit_scene, read_scene
+from .stream import certify_stream
 from .trajectory import Trajectory, finite_difference_velocities
 from .trajectory_files import read_trajectory, write_trajectory
 from .urdf import load_robot
@@ -42,5 +43,5 @@ __all__ = [
     "load_capsules", "load_robot", "load_robot_file", "motion_constants", "read_scene", "read_trajectory",
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities",
-    "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH",
+    "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
 ]

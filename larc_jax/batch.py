@@ -6,6 +6,11 @@ A dataset of trajectories (each with its own waypoint count, duration and scene)
 of (trajectory, depth, index) intervals in jitted, vmapped calls whose sizes are padded to a
 few buckets, so a process compiles a handful of shapes rather than one per frontier size.
 
+Several devices. With more than one device (all GPUs of a machine, or CPU devices forced with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each batch of intervals is sharded
+along the interval axis over a 1-D mesh (``jax.sharding``); every interval is still evaluated
+by the same kernel on one device, so results are identical to a single-device run.
+
 Interval ends are exact dyadic fractions of the horizon (:func:`dyadic_ends`), shared by every
 certifier: neighbours compute their common end from the same fraction, so a cover has no gaps.
 """
@@ -88,6 +93,18 @@ class Batch:
     margin: np.ndarray
     dtype: np.dtype
     guard: float
+    devices: tuple = ()
+    """Devices the interval axis is sharded over (one device: no sharding)."""
+
+    def _put(self, *arrays):
+        """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
+        (robot, splines, boxes) are replicated by ``jit``."""
+        if len(self.devices) <= 1:
+            return arrays
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+        sharding = NamedSharding(Mesh(np.array(self.devices), ("interval",)), PartitionSpec("interval"))
+        return tuple(jax.device_put(x, sharding) for x in arrays)
 
     def endpoints(self, traj: np.ndarray, depth: np.ndarray, index: np.ndarray):
         """Interval ends from (trajectory, depth, index): :func:`dyadic_ends`."""
@@ -106,6 +123,7 @@ class Batch:
         for start in range(0, F, BUCKETS[-1]):
             stop = min(F, start + BUCKETS[-1])
             size = next(s for s in BUCKETS if s >= stop - start)
+            size = -(-size // max(1, len(self.devices))) * max(1, len(self.devices))  # whole shards
             pad = size - (stop - start)
             sl = slice(start, stop)
             # Padding repeats the chunk's first interval; its results are dropped below.
@@ -113,9 +131,10 @@ class Batch:
             aa = np.concatenate([a[sl], np.repeat(a[start], pad)]).astype(self.dtype)
             bb = np.concatenate([b[sl], np.repeat(b[start], pad)]).astype(self.dtype)
             with jax.enable_x64(self.dtype == np.float64):
+                tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
                 out = _evaluate_intervals(
                     self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
-                    self.box_mask, tr, self.scene_of[tr], aa, bb, self.margin,
+                    self.box_mask, tr_s, sc_s, aa, bb, self.margin,
                 )
                 gg, cc, bx = (np.asarray(x) for x in out)
             g[sl], cap[sl], box[sl] = gg[: stop - start], cc[: stop - start], bx[: stop - start]
@@ -125,8 +144,12 @@ class Batch:
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
-            margin: float, dtype) -> Batch:
-    """Pad a validated dataset into a :class:`Batch` (one scene per trajectory)."""
+            margin: float, dtype, devices=None) -> Batch:
+    """Pad a validated dataset into a :class:`Batch` (one scene per trajectory).
+
+    ``devices``: the devices to shard each interval batch over (default: every device of JAX's
+    default backend, e.g. all local GPUs; on a CPU, one device unless XLA is asked for more).
+    """
     dtype = np.dtype(dtype)
     # Shapes are rounded up to size classes (see size_class); padded knots lie after t_K and
     # are never touched by an interval inside the horizon (hermite.pad_waypoints), padded
@@ -150,4 +173,5 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
         margin=np.asarray(margin, dtype), dtype=dtype,
         guard=rounding_guard(dtype, coordinate_scale(scene_list, robot, capsules)),
+        devices=tuple(jax.devices() if devices is None else devices),
     )

@@ -27,7 +27,7 @@ from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
 from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
 from .interval import coordinate_scale, evaluate_interval_np, rounding_guard
-from .results import DatasetResult, Leaf, TrajectoryResult
+from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
 from .trajectory import Trajectory, validate_trajectory
@@ -51,64 +51,72 @@ class Method(str, enum.Enum):
 assert tuple(m.value for m in Method) == METHODS
 
 
-def _leaves(capsules, scenes, traj, depth, index, a, b, g, cap, box, passed):
-    """``(trajectory, Leaf)`` for each terminal interval (arrays of equal length)."""
-    out = []
-    for i in range(len(traj)):
-        s = scenes[traj[i]]
-        out.append((int(traj[i]), Leaf(
-            depth=int(depth[i]), index=int(index[i]), t0=float(a[i]), t1=float(b[i]),
-            clearance_m=float(g[i]), certified=bool(passed[i]),
-            capsule=capsules.names[int(cap[i])] if s.n_boxes else "",
-            box=s.box_names[int(box[i])] if s.n_boxes and s.box_names else "",
-        )))
-    return out
+class _Names:
+    """Global box-name codes: scene ``s``'s box ``k`` is code ``offset[s] + k``."""
+
+    def __init__(self, scenes: Sequence[Scene]):
+        unique = list(dict.fromkeys(id(s) for s in scenes))
+        first = {u: next(s for s in scenes if id(s) == u) for u in unique}
+        offsets, names, start = {}, [], 0
+        for u in unique:
+            s = first[u]
+            offsets[u] = start
+            names += [s.box_names[k] if k < len(s.box_names) else "" for k in range(s.n_boxes)]
+            start += s.n_boxes
+        self.box_names = tuple(names)
+        self.offset = np.array([offsets[id(s)] for s in scenes], np.int64)
+        self.has_boxes = np.array([s.n_boxes > 0 for s in scenes], bool)
 
 
-def _larc_batched(batch: Batch, trajectories, scenes, capsules, max_depth, progress):
-    N = len(trajectories)
-    traj = np.arange(N, dtype=np.int64)
-    index = np.zeros(N, np.int64)
-    frontier = np.zeros((N, max_depth + 1), np.int64)
-    leaves: list[list[Leaf]] = [[] for _ in range(N)]
+def _leaf_table(names: _Names, traj, depth, index, a, b, g, cap, box, passed) -> LeafTable:
+    traj = np.asarray(traj, np.int64)
+    has = names.has_boxes[traj]
+    return LeafTable(
+        traj=traj, depth=np.asarray(depth, np.int16), index=np.asarray(index, np.int64),
+        t0=np.asarray(a, np.float64), t1=np.asarray(b, np.float64), clearance_m=np.asarray(g, np.float64),
+        certified=np.asarray(passed, bool),
+        capsule=np.where(has, np.asarray(cap, np.int64), -1).astype(np.int32),
+        box=np.where(has, names.offset[traj] + np.asarray(box, np.int64), -1).astype(np.int32),
+    )
+
+
+def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress):
+    traj = np.arange(n_traj, dtype=np.int64)
+    index = np.zeros(n_traj, np.int64)
+    frontier = np.zeros((n_traj, max_depth + 1), np.int64)
+    parts = []
     for d in range(max_depth + 1):
         if len(traj) == 0:
             break
         depth = np.full(len(traj), d)
-        frontier[:, d] = np.bincount(traj, minlength=N)
+        frontier[:, d] = np.bincount(traj, minlength=n_traj)
         a, b, g, cap, box = batch.evaluate(traj, depth, index, progress)
         passed = g > batch.guard  # NaN compares False: never certifies
         final = passed | (d == max_depth)
-        for k, leaf in _leaves(capsules, scenes, traj[final], depth[final], index[final],
-                               a[final], b[final], g[final], cap[final], box[final], passed[final]):
-            leaves[k].append(leaf)
+        parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], g[final],
+                                 cap[final], box[final], passed[final]))
         open_ = ~final
         traj = np.repeat(traj[open_], 2)
         index = np.stack([2 * index[open_], 2 * index[open_] + 1], axis=1).reshape(-1)
-    return frontier, leaves
+    return frontier, LeafTable.concatenate(parts)
 
 
-def _fixed(batch: Batch, trajectories, scenes, capsules, depth_fixed, max_depth, progress):
-    N = len(trajectories)
+def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, progress):
     m = 2**depth_fixed
-    traj = np.repeat(np.arange(N, dtype=np.int64), m)
-    index = np.tile(np.arange(m, dtype=np.int64), N)
+    traj = np.repeat(np.arange(n_traj, dtype=np.int64), m)
+    index = np.tile(np.arange(m, dtype=np.int64), n_traj)
     depth = np.full(len(traj), depth_fixed)
     a, b, g, cap, box = batch.evaluate(traj, depth, index, progress)
     passed = g > batch.guard
-    leaves: list[list[Leaf]] = [[] for _ in range(N)]
-    for k, leaf in _leaves(capsules, scenes, traj, depth, index, a, b, g, cap, box, passed):
-        leaves[k].append(leaf)
-    frontier = np.zeros((N, max(max_depth, depth_fixed) + 1), np.int64)
+    frontier = np.zeros((n_traj, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
-    return frontier, leaves
+    return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, g, cap, box, passed)])
 
 
-def _reference(trajectories, scenes, robot, capsules, margin, max_depth, guard, progress):
+def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max_depth, guard, progress):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
-    all_leaves = []
+    rows = []  # (traj, depth, index, a, b, g, capsule, box, passed)
     for k, (traj, scene) in enumerate(zip(trajectories, scenes)):
-        leaves: list[Leaf] = []
         ts, te = float(traj.t[0]), float(traj.t[-1])
 
         def certify_node(d: int, i: int) -> bool:  # Algorithm 1
@@ -119,16 +127,15 @@ def _reference(trajectories, scenes, robot, capsules, margin, max_depth, guard, 
                 progress(1)
             passed = ev.g > guard
             if passed or d == max_depth:
-                leaves.extend(leaf for _, leaf in _leaves(
-                    capsules, [scene], [0], [d], [i], [a], [b], [ev.g], [ev.capsule], [ev.box], [passed]))
+                rows.append((k, d, i, a, b, ev.g, ev.capsule, ev.box, passed))
                 return bool(passed)
             left = certify_node(d + 1, 2 * i)
             right = certify_node(d + 1, 2 * i + 1)
             return left and right
 
         certify_node(0, 0)
-        all_leaves.append(leaves)
-    return frontier, all_leaves
+    cols = list(zip(*rows)) if rows else [[]] * 9
+    return frontier, LeafTable.concatenate([_leaf_table(names, *cols)])
 
 
 def _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth):
@@ -163,6 +170,7 @@ def certify(
     coarse_depth: int = DEFAULT_COARSE_DEPTH,
     dtype=np.float64,
     progress: Callable[[int], None] | None = None,
+    devices=None,
 ) -> DatasetResult:
     """Certify trajectories against their scenes in one call.
 
@@ -175,6 +183,8 @@ def certify(
       dtype: float64 (default) or float32 (with the float32 rounding guard; see
         :mod:`larc_jax.interval`).
       progress: called with the number of intervals evaluated after each chunk.
+      devices: JAX devices to shard the intervals over (default: all devices of the default
+        backend; see :mod:`larc_jax.batch`). Results do not depend on it.
 
     Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory.
     JAX computations run with 64-bit types enabled only inside this call (scoped, not global).
@@ -187,32 +197,35 @@ def certify(
         raise LarcInputError(f"certify: unknown method {method!r} ({', '.join(METHODS)})") from None
     trajectories, scenes = _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth)
     start = time.perf_counter()
+    names = _Names(scenes)
     if method == Method.REFERENCE:
         guard = rounding_guard(np.float64, coordinate_scale(scenes, robot, capsules))
-        frontier, leaves = _reference(trajectories, scenes, robot, capsules, margin, max_depth, guard, progress)
+        frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, guard,
+                                      progress)
     else:
-        batch = prepare(trajectories, scenes, robot, capsules, margin, dtype)
+        batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, devices)
         guard = batch.guard
         if method == Method.LARC:
-            frontier, leaves = _larc_batched(batch, trajectories, scenes, capsules, max_depth, progress)
+            frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress)
         else:
             depth = max_depth if method == Method.FINE else coarse_depth
-            frontier, leaves = _fixed(batch, trajectories, scenes, capsules, depth, max_depth, progress)
+            frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress)
     wall = time.perf_counter() - start
-    results = []
-    for k, traj in enumerate(trajectories):
-        lv = tuple(sorted(leaves[k], key=lambda leaf: leaf.t0))
-        g = np.array([leaf.clearance_m for leaf in lv])
-        results.append(TrajectoryResult(
-            id=traj.id, method=method.value,
-            certified=bool(all(leaf.certified for leaf in lv)),
-            evaluations=int(frontier[k].sum()), frontier_sizes=tuple(int(x) for x in frontier[k]),
-            min_clearance_m=float(np.nan if np.isnan(g).any() else g.min()),
-            leaves=lv, duration_s=traj.duration, scene=scenes[k].name,
-            margin_m=float(margin), max_depth=max_depth, guard_m=float(guard),
-        ))
+    return _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves,
+                           np.full(len(trajectories), guard), float(margin), max_depth, wall)
+
+
+def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, guard,
+                    margin, max_depth, wall) -> DatasetResult:
+    n = len(trajectories)
+    bad = np.bincount(leaves.traj, weights=~leaves.certified, minlength=n) > 0
+    nan = np.bincount(leaves.traj, weights=np.isnan(leaves.clearance_m), minlength=n) > 0
+    g_min = np.full(n, np.inf)
+    np.minimum.at(g_min, leaves.traj, np.where(np.isnan(leaves.clearance_m), np.inf, leaves.clearance_m))
     return DatasetResult(
-        method=method.value, trajectories=tuple(results),
-        frontier_sizes=tuple(int(x) for x in frontier.sum(axis=0)),
-        margin_m=float(margin), max_depth=max_depth, wall_time_s=wall,
+        method=method, ids=tuple(t.id for t in trajectories), scene_names=tuple(s.name for s in scenes),
+        certified=~bad, evaluations=frontier.sum(axis=1), frontier=frontier,
+        min_clearance_m=np.where(nan, np.nan, g_min), duration_s=np.array([t.duration for t in trajectories]),
+        guard_m=np.asarray(guard, np.float64), leaves=leaves, capsule_names=tuple(capsules.names),
+        box_names=names.box_names, margin_m=margin, max_depth=max_depth, wall_time_s=wall,
     )

@@ -19,7 +19,7 @@ import traceback
 import warnings
 from pathlib import Path
 
-from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, DEFAULT_PADDING_M, METHODS,
+from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, DEFAULT_PADDING_M, METHODS,
                        VELOCITY_MODES, check_depth, check_margin)
 from .errors import LarcInputError
 from .report import format_clearance, leaves_bytes, result_json, table_lines
@@ -227,10 +227,18 @@ def _check_certify_options(args, outputs=()) -> None:
 def _cmd_certify(args) -> int:
     import json
 
+    from .enclosure.robot_file import load_robot_file
     from .scene import read_scene
 
-    from .enclosure.robot_file import load_robot_file
-
+    if args.manifest:
+        return _certify_manifest(args)
+    for option in ("out", "dask"):
+        if getattr(args, option):
+            raise LarcInputError(f"--{option} needs --manifest")
+    if not args.trajectories:
+        raise LarcInputError("certify needs trajectory files (TRAJ_FILE ...) or --manifest FILE.csv")
+    if not args.scene:
+        raise LarcInputError("certify needs --scene FILE (or --manifest FILE.csv, whose rows name the scenes)")
     _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves)))
     leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
     robot, capsules = load_robot_file(args.robot)
@@ -250,6 +258,63 @@ def _cmd_certify(args) -> int:
         return EXIT_OK
     if not args.fail_on_uncertified:
         log.info("some trajectories are not certified; exit status 0 (--no-fail-on-uncertified)")
+        return EXIT_OK
+    return EXIT_UNCERTIFIED
+
+
+def _certify_manifest(args) -> int:
+    """``larc certify --manifest``: chunks into a resumable Parquet dataset (larc_jax.manifest)."""
+    from .manifest import ManifestJob, certify_chunk, pending_chunks
+
+    if args.trajectories or args.scene:
+        raise LarcInputError("--manifest takes the trajectories and scenes from its rows: "
+                             "give no TRAJ_FILE and no --scene")
+    if args.json:
+        raise LarcInputError("--json is not available with --manifest (the results go to --out)")
+    if not args.out:
+        raise LarcInputError("--manifest needs --out RESULTS.parquet (a folder of Parquet parts)")
+    _check_certify_options(args)
+    job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, method=args.method,
+                      margin_m=args.margin, max_depth=args.max_depth, velocities=args.velocities,
+                      chunk_size=args.chunk_size)
+    rows_done = [0]
+    with _progress_bar(args, desc=f"certifying ({args.method})", unit=" intervals") as bar:
+
+        def on_chunk(summary: dict) -> None:
+            if args.dask:  # workers cannot report intervals as they go: count per chunk
+                bar.update(summary["evaluations"])
+            rows_done[0] += summary["rows"]
+            bar.set_postfix_str(f"{rows_done[0]} rows", refresh=False)
+            if summary["first_error"]:
+                log.warning("%s", summary["first_error"])
+
+        if args.dask:
+            from .distributed import certify_manifest_dask
+
+            total = certify_manifest_dask(args.manifest, job, args.dask, on_chunk=on_chunk)
+        else:
+            from .manifest import add_summary, new_total
+
+            todo, skipped = pending_chunks(args.manifest, job)
+            total = new_total(skipped)
+            for k, rows in todo:
+                summary = certify_chunk(job, k, rows, progress=bar.update)
+                add_summary(total, summary)
+                on_chunk(summary)
+    import pandas as pd
+
+    parts = sorted(Path(args.out).glob("part-*.parquet"))
+    results = pd.read_parquet(args.out, columns=["certified", "error"]) if parts else \
+        pd.DataFrame({"certified": [], "error": []})
+    n, n_ok, n_err = len(results), int(results["certified"].sum()), int((results["error"] != "").sum())
+    if not args.quiet:
+        print(f"{n_ok} of {n} certified, {n_err} bad input ({args.method}, margin {args.margin * 1000:g} mm); "
+              f"{total['chunks_done']} chunks now, {total['chunks_skipped']} already done; results in {args.out}"
+              + (f", leaves in {args.leaves}" if args.leaves else ""))
+    if n_err:
+        log.error("%d manifest rows are bad input (the error column of %s says why)", n_err, args.out)
+        return EXIT_BAD_INPUT
+    if n_ok == n or not args.fail_on_uncertified:
         return EXIT_OK
     return EXIT_UNCERTIFIED
 
@@ -354,12 +419,13 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("certify", help="certify trajectories against a scene", parents=common,
                        description="Exit status: 0 all certified (or --no-fail-on-uncertified), "
                                    "1 some not certified, 2 bad input or usage, 3 internal error.")
-    c.add_argument("trajectories", nargs="+", metavar="TRAJ_FILE",
+    c.add_argument("trajectories", nargs="*", metavar="TRAJ_FILE",
                    help="trajectory files: JointTrajectory / RobotTrajectory / DisplayTrajectory "
                         "YAML or JSON (e.g. `ros2 topic echo --once` output), or CSV "
                         "(t, <joint>..., <joint>_vel...)")
-    c.add_argument("--scene", required=True,
-                   help="scene YAML {frame, boxes: [{name, min, max}]} or MoveIt .scene text (boxes)")
+    c.add_argument("--scene",
+                   help="scene YAML {frame, boxes: [{name, min, max}]} or MoveIt .scene text (boxes); "
+                        "required unless --manifest")
     c.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
                    help="recorded: use the file's velocities (default; a file without them is "
                         "refused); finite-difference: compute them from the positions (the "
@@ -374,6 +440,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--leaves", metavar="OUT.parquet",
                    help="write the full leaf cover, one row per leaf (id, depth, index, t0, t1, "
                         "clearance_m, certified, capsule, box); .parquet or .csv by suffix")
+    c.add_argument("--manifest", metavar="FILE.csv",
+                   help="CSV with columns trajectory,scene (paths relative to it; optional id): certify "
+                        "every row in chunks into --out, resumably")
+    c.add_argument("--out", metavar="RESULTS.parquet",
+                   help="with --manifest: results dataset (a folder of Parquet parts, one row per manifest row)")
+    c.add_argument("--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE,
+                   help=f"with --manifest: rows per chunk (default {DEFAULT_CHUNK_SIZE})")
+    c.add_argument("--dask", metavar="SCHEDULER",
+                   help="with --manifest: run the chunks on a Dask cluster (scheduler address, e.g. "
+                        "tcp://host:8786; needs larc_jax[distributed])")
     c.add_argument("--fail-on-uncertified", action=argparse.BooleanOptionalAction, default=True,
                    help="exit 1 if some trajectory is not certified (default); with "
                         "--no-fail-on-uncertified exit 0 unless the input is bad")

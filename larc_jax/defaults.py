@@ -5,7 +5,7 @@ from __future__ import annotations
 
 __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "MAX_DEPTH_LIMIT",
-    "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "check_margin", "check_depth",
+    "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "DEFAULT_CHUNK_SIZE", "check_margin", "check_depth",
 ]
 
 DEFAULT_MARGIN_M = 0.01
@@ -22,6 +22,9 @@ METHODS = ("larc", "fine", "coarse", "reference")
 VELOCITY_MODES = ("recorded", "finite-difference")
 """``recorded``: use the file's velocities (refuse a file without them); ``finite-difference``:
 compute them from the positions (:func:`larc_jax.trajectory.finite_difference_velocities`)."""
+DEFAULT_CHUNK_SIZE = 256
+"""Trajectories per chunk when streaming (``certify_stream``, ``larc certify --manifest``): large
+enough to keep the frontier kernels busy, small enough that a chunk takes tens of MB."""
 DEFAULT_PADDING_M = 0.001
 """Padding added to fitted capsule radii on top of the proven containment, m."""
 

@@ -1,5 +1,11 @@
 """Certification results: leaves, per-trajectory and per-dataset results, pandas export.
 
+A :class:`DatasetResult` is *columnar*: one NumPy array per per-trajectory quantity and a
+:class:`LeafTable` (one array per leaf field) for every leaf of every trajectory, so a dataset
+of 10^5 trajectories with millions of leaves holds a few dozen arrays, not millions of Python
+objects. :class:`TrajectoryResult` and :class:`Leaf` objects are built only when asked for
+(``result[i]``, iteration, ``result[i].leaves``).
+
 A result carries the parameters that produced it (the margin ρ, the depth, the method, the
 rounding guard): one owner per parameter, so a reader (``explain``, the JSON writer) never
 takes them again from elsewhere.
@@ -8,13 +14,19 @@ takes them again from elsewhere.
 from __future__ import annotations
 
 import dataclasses
+import functools
+from typing import Sequence
 
 import numpy as np
 
-__all__ = ["Leaf", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS"]
+__all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS"]
 
 LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "certified", "capsule", "box")
 """Columns of :meth:`DatasetResult.leaves_dataframe` (and of ``larc certify --leaves``)."""
+
+RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "duration_s",
+                  "blocked_t0", "blocked_t1", "blocked_capsule", "blocked_box")
+"""Columns of :meth:`DatasetResult.to_dataframe`."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +43,37 @@ class Leaf:
     certified: bool
     capsule: str
     box: str
+
+
+@dataclasses.dataclass(frozen=True)
+class LeafTable:
+    """Leaves as columns (NumPy arrays of one length), sorted by trajectory, then time.
+
+    ``capsule`` indexes the result's ``capsule_names`` and ``box`` its ``box_names`` (-1: no
+    pair, i.e. a scene without boxes).
+    """
+
+    traj: np.ndarray
+    """int64 index of the leaf's trajectory in its :class:`DatasetResult`."""
+    depth: np.ndarray
+    index: np.ndarray
+    t0: np.ndarray
+    t1: np.ndarray
+    clearance_m: np.ndarray
+    certified: np.ndarray
+    capsule: np.ndarray
+    box: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.traj)
+
+    @staticmethod
+    def concatenate(parts: Sequence["LeafTable"]) -> "LeafTable":
+        """One table from several, sorted by (trajectory, t0)."""
+        cols = {f.name: np.concatenate([getattr(p, f.name) for p in parts]) if parts else np.zeros(0)
+                for f in dataclasses.fields(LeafTable)}
+        order = np.lexsort((cols["t0"], cols["traj"]))
+        return LeafTable(**{k: v[order] for k, v in cols.items()})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,42 +104,121 @@ class TrajectoryResult:
 
 @dataclasses.dataclass(frozen=True)
 class DatasetResult:
+    """Results of one certification call, columnar (module docstring)."""
+
     method: str
-    trajectories: tuple[TrajectoryResult, ...]
-    frontier_sizes: tuple[int, ...]
-    """Dataset frontier size per depth (sum over trajectories)."""
+    ids: tuple[str, ...]
+    scene_names: tuple[str, ...]
+    certified: np.ndarray
+    """(N,) bool."""
+    evaluations: np.ndarray
+    """(N,) int64 intervals evaluated."""
+    frontier: np.ndarray
+    """(N, D + 1) int64 intervals evaluated per depth."""
+    min_clearance_m: np.ndarray
+    """(N,) smallest leaf clearance g(I), m (NaN if any leaf is NaN)."""
+    duration_s: np.ndarray
+    """(N,) trajectory durations, s."""
+    guard_m: np.ndarray
+    """(N,) rounding guard each trajectory's leaves were compared against, m."""
+    leaves: LeafTable
+    capsule_names: tuple[str, ...]
+    box_names: tuple[str, ...]
     margin_m: float
     max_depth: int
     wall_time_s: float
+
+    # -- per-trajectory access ---------------------------------------------------------------
+
+    @functools.cached_property
+    def _leaf_bounds(self) -> np.ndarray:
+        return np.searchsorted(self.leaves.traj, np.arange(len(self.ids) + 1))
+
+    def leaf_slice(self, i: int) -> slice:
+        """Rows of :attr:`leaves` that belong to trajectory ``i``."""
+        lo, hi = self._leaf_bounds[i], self._leaf_bounds[i + 1]
+        return slice(int(lo), int(hi))
+
+    def _leaf(self, row: int) -> Leaf:
+        lv = self.leaves
+        c, b = int(lv.capsule[row]), int(lv.box[row])
+        return Leaf(depth=int(lv.depth[row]), index=int(lv.index[row]), t0=float(lv.t0[row]),
+                    t1=float(lv.t1[row]), clearance_m=float(lv.clearance_m[row]),
+                    certified=bool(lv.certified[row]),
+                    capsule=self.capsule_names[c] if c >= 0 else "", box=self.box_names[b] if b >= 0 else "")
+
+    def trajectory(self, i: int) -> TrajectoryResult:
+        """The :class:`TrajectoryResult` of trajectory ``i`` (built on demand)."""
+        sl = self.leaf_slice(i)
+        return TrajectoryResult(
+            id=self.ids[i], method=self.method, certified=bool(self.certified[i]),
+            evaluations=int(self.evaluations[i]), frontier_sizes=tuple(int(x) for x in self.frontier[i]),
+            min_clearance_m=float(self.min_clearance_m[i]),
+            leaves=tuple(self._leaf(r) for r in range(sl.start, sl.stop)),
+            duration_s=float(self.duration_s[i]), scene=self.scene_names[i], margin_m=self.margin_m,
+            max_depth=self.max_depth, guard_m=float(self.guard_m[i]),
+        )
+
+    @functools.cached_property
+    def trajectories(self) -> tuple[TrajectoryResult, ...]:
+        return tuple(self.trajectory(i) for i in range(len(self.ids)))
+
+    @property
+    def frontier_sizes(self) -> tuple[int, ...]:
+        """Dataset frontier size per depth (sum over trajectories)."""
+        return tuple(int(x) for x in self.frontier.sum(axis=0))
 
     def __iter__(self):
         return iter(self.trajectories)
 
     def __len__(self) -> int:
-        return len(self.trajectories)
+        return len(self.ids)
 
     def __getitem__(self, i) -> TrajectoryResult:
         return self.trajectories[i]
 
+    # -- columnar export ---------------------------------------------------------------------
+
+    def first_inconclusive_rows(self) -> np.ndarray:
+        """(N,) row in :attr:`leaves` of each trajectory's earliest uncertified leaf (-1: none)."""
+        lv = self.leaves
+        rows = np.full(len(self.ids), -1, np.int64)
+        bad = np.flatnonzero(~lv.certified)
+        # Leaves are sorted by (trajectory, t0): the first bad row per trajectory is the earliest.
+        traj, first = np.unique(lv.traj[bad], return_index=True)
+        rows[traj] = bad[first]
+        return rows
+
     def to_dataframe(self):
-        """One row per trajectory (pandas)."""
+        """One row per trajectory (pandas; columns :data:`RESULT_COLUMNS`)."""
         import pandas as pd
 
-        rows = []
-        for r in self.trajectories:
-            bad = r.first_inconclusive
-            rows.append(dict(
-                id=r.id, scene=r.scene, method=r.method, certified=r.certified,
-                evaluations=r.evaluations, min_clearance_m=r.min_clearance_m,
-                duration_s=r.duration_s,
-                blocked_t0=bad.t0 if bad else np.nan, blocked_t1=bad.t1 if bad else np.nan,
-                blocked_capsule=bad.capsule if bad else "", blocked_box=bad.box if bad else "",
-            ))
-        return pd.DataFrame(rows)
+        rows = self.first_inconclusive_rows()
+        has = rows >= 0
+        r = np.where(has, rows, 0)
+        lv = self.leaves
+        names = np.array(("",) + self.capsule_names, dtype=object)
+        boxes = np.array(("",) + self.box_names, dtype=object)
+        take = (lambda col: col[r]) if len(lv) else (lambda col: np.zeros(len(r), col.dtype))
+        return pd.DataFrame({
+            "id": list(self.ids), "scene": list(self.scene_names), "method": self.method,
+            "certified": self.certified.astype(bool), "evaluations": self.evaluations.astype(np.int64),
+            "min_clearance_m": self.min_clearance_m, "duration_s": self.duration_s,
+            "blocked_t0": np.where(has, take(lv.t0), np.nan), "blocked_t1": np.where(has, take(lv.t1), np.nan),
+            "blocked_capsule": np.where(has, names[take(lv.capsule) + 1], ""),
+            "blocked_box": np.where(has, boxes[take(lv.box) + 1], ""),
+        }, columns=list(RESULT_COLUMNS))
 
     def leaves_dataframe(self):
         """Every leaf of every trajectory (pandas; columns :data:`LEAF_COLUMNS`)."""
         import pandas as pd
 
-        rows = [dict(id=r.id, **dataclasses.asdict(leaf)) for r in self.trajectories for leaf in r.leaves]
-        return pd.DataFrame(rows, columns=list(LEAF_COLUMNS))
+        lv = self.leaves
+        names = np.array(("",) + self.capsule_names, dtype=object)
+        boxes = np.array(("",) + self.box_names, dtype=object)
+        return pd.DataFrame({
+            "id": np.array(self.ids, dtype=object)[lv.traj] if len(lv) else np.zeros(0, object),
+            "depth": lv.depth.astype(np.int64), "index": lv.index.astype(np.int64),
+            "t0": lv.t0, "t1": lv.t1, "clearance_m": lv.clearance_m, "certified": lv.certified.astype(bool),
+            "capsule": names[lv.capsule + 1], "box": boxes[lv.box + 1],
+        }, columns=list(LEAF_COLUMNS))
