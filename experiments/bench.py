@@ -1,108 +1,230 @@
-"""Benchmark: batched LARC vs fixed-fine vs the NumPy reference on synthetic window trajectories.
+"""Benchmark: where LARC stands on this machine, every figure measured in one run.
 
-    python -m experiments.bench [--n 160] [--json results/bench/bench.json]
+    python -m experiments.bench [--json results/bench/bench_cpu.json] [--quick]
 
-Prints, from one run: interval evaluations per second, compile time (first call minus a warm
-call, reported separately), whole-set times and the reference/LARC speed ratio.
+Sections (each printed and written into the JSON):
+
+* ``stageB`` — the 160 committed Stage B trajectories with their scenes: LARC and fixed-fine
+  whole-dataset warm times (median of 3 warm calls), interval evaluations per second, and *real*
+  capsule–box pairs per second (each evaluated interval counts its capsules × the real boxes of
+  its scene; padded or masked boxes do not count); compile time (first call − warm call)
+  reported separately.
+* ``kernel`` — XLA's cost analysis of the compiled interval kernel at the largest bucket on the
+  Stage B scenes: flops and bytes accessed per interval, against the machine's nominal peak.
+* ``reference`` — the NumPy float64 reference (the paper's Algorithm 1) on the same
+  trajectories: ratio reference / LARC (``--skip-reference`` leaves it out).
+* ``audit`` — the FCL mesh audit at 250 Hz (``experiments.audit``, 2 worker processes) on the
+  same trajectories: ratio audit / LARC (``--skip-audit`` leaves it out).
+* ``stream`` — ``certify_stream`` over N Stage B-like trajectories (each a Stage B trajectory
+  with a random joint offset and time scale, generated lazily): trajectories and intervals per
+  second.
+* ``rss`` — peak resident memory of a fresh process that certifies N Stage B-like trajectories,
+  for each N of ``--rss-n``, one subprocess per N (``experiments.bench_rss``), in one
+  ``certify`` call and streamed.
+
+Machine peak: ``cores × clock × flops/cycle`` with flops/cycle = 16 (float64: two 256-bit FMA
+pipes, as on AMD Zen 4 and Intel AVX2/AVX-512 server cores) unless ``--peak-gflops`` is given;
+it is a nominal figure, stated as such in the output.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 
-import jax
 import numpy as np
 
-from larc_jax.enclosure import default_capsule_path, load_capsules
-from larc_jax.certify import certify
-from larc_jax.io import atomic_write_json
-from larc_jax.urdf import load_robot
-from larc_jax.scene import Scene
-from larc_jax.trajectory import Trajectory
+ROOT = Path(__file__).resolve().parent.parent
+STAGEB_DIR = ROOT / "results" / "stageB" / "dataset" / "trajectories"
+SCENES_DIR = ROOT / "configs" / "scenes"
 
-# A wall at x = 0.30..0.34 m in front of the arm with a 0.30 m wide, 0.25 m high opening.
-WINDOW = Scene(
-    lo=np.array([[0.30, -0.60, -0.05], [0.30, 0.15, -0.05], [0.30, -0.15, -0.05], [0.30, -0.15, 0.40]]),
-    hi=np.array([[0.34, -0.15, 0.70], [0.34, 0.60, 0.70], [0.34, 0.15, 0.15], [0.34, 0.15, 0.70]]),
-    box_names=("left", "right", "sill", "lintel"), name="bench_window",
-)
+__all__ = ["stageB_dataset", "stageB_like", "main"]
 
 
-def synthetic_trajectories(robot, n: int, seed: int = 0) -> list[Trajectory]:
-    """Smooth multi-waypoint trajectories (quadratic Bezier between random configurations,
-    finite-difference velocities), 2-6 s long, 5-40 waypoints; one in four faces the window."""
+def stageB_dataset(robot):
+    """The committed Stage B trajectories and their scenes (folder name = scene name)."""
+    from larc_jax import read_scene, read_trajectory
+
+    trajs, scenes, cache = [], [], {}
+    for folder in sorted(p for p in STAGEB_DIR.iterdir() if p.is_dir()):
+        scene = cache.setdefault(folder.name, read_scene(SCENES_DIR / f"{folder.name}.yaml"))
+        for f in sorted(folder.glob("*.yaml")):
+            trajs.append(read_trajectory(f, robot))
+            scenes.append(scene)
+    return trajs, scenes
+
+
+def stageB_like(robot, trajs, scenes, n: int, seed: int = 0):
+    """``n`` (trajectory, scene) pairs, generated lazily: a random Stage B trajectory with every
+    joint offset by U(-0.05, 0.05) rad (kept within the limits) and its time axis scaled by
+    U(0.8, 1.25) (velocities scaled inversely), in its own scene."""
+    import dataclasses
+
     rng = np.random.default_rng(seed)
     lo, hi = np.asarray(robot.q_lower), np.asarray(robot.q_upper)
-    mid, half = (lo + hi) / 2, (hi - lo) / 2
-    out = []
     for k in range(n):
-        K = int(rng.integers(5, 41))
-        T = rng.uniform(2.0, 6.0)
-        t = np.linspace(0.0, T, K)
-        ends = mid + half * rng.uniform(-0.7, 0.7, (3, robot.n_joints))
-        if k % 4:  # three in four work beside/behind the base, away from the wall (x > 0.3)
-            ends[:, 0] = rng.choice([-1.0, 1.0]) * rng.uniform(1.5, 2.5, 3)
-        u = np.linspace(0, 1, K)[:, None]
-        q = (1 - u) ** 2 * ends[0] + 2 * u * (1 - u) * ends[1] + u**2 * ends[2]
-        qd = np.gradient(q, t, axis=0)
-        out.append(Trajectory(t=t, q=q, qd=qd, joint_names=robot.active_joint_names, id=f"bench{k:03d}"))
+        i = int(rng.integers(len(trajs)))
+        t = trajs[i]
+        shift = rng.uniform(-0.05, 0.05, t.q.shape[1])
+        shift = np.clip(shift, lo - t.q.min(axis=0), hi - t.q.max(axis=0))
+        scale = rng.uniform(0.8, 1.25)
+        yield dataclasses.replace(t, t=t.t * scale, q=t.q + shift, qd=t.qd / scale, id=f"like{k:07d}"), scenes[i]
+
+
+def _timed(fn):
+    start = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - start
+
+
+def _warm(fn, repeats: int = 3):
+    first, t_first = _timed(fn)
+    times = [_timed(fn)[1] for _ in range(repeats)]
+    return first, t_first, statistics.median(times)
+
+
+def real_pairs(result, capsules, scenes) -> int:
+    """Capsule–box pairs really evaluated: per interval, capsules × the scene's real boxes."""
+    boxes = np.array([s.n_boxes for s in scenes])
+    return int((result.evaluations * boxes).sum()) * capsules.n_capsules
+
+
+def section_stageB(robot, capsules, trajs, scenes) -> dict:
+    from larc_jax import certify
+
+    out = {"n_trajectories": len(trajs)}
+    for method in ("larc", "fine"):
+        res, t_first, t_warm = _warm(lambda: certify(trajs, scenes, robot, capsules, method=method))
+        evals = int(res.evaluations.sum())
+        pairs = real_pairs(res, capsules, scenes)
+        out[method] = {
+            "certified": int(res.certified.sum()), "evaluations": evals, "real_pairs": pairs,
+            "first_call_s": t_first, "warm_s": t_warm, "compile_s": max(0.0, t_first - t_warm),
+            "intervals_per_s": evals / t_warm, "pairs_per_s": pairs / t_warm,
+        }
+    out["fine_over_larc_time"] = out["fine"]["warm_s"] / out["larc"]["warm_s"]
     return out
 
 
-def timed(fn):
-    start = time.perf_counter()
-    result = fn()
-    return result, time.perf_counter() - start
+def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
+    """XLA cost analysis of the interval kernel on one full bucket of Stage B intervals."""
+    import jax
+
+    from larc_jax.batch import BUCKETS, prepare
+    from larc_jax.certify import _check_inputs  # noqa: PLC2701 - the benchmark measures internals
+
+    trajs, scenes = _check_inputs(trajs, scenes, robot, capsules, 0.01, 9, 4)
+    batch = prepare(trajs, scenes, robot, capsules, 0.01, np.float64)
+    F = BUCKETS[-1]
+    rng = np.random.default_rng(0)
+    traj = rng.integers(0, len(trajs), F)
+    cost = batch.cost_analysis(traj, np.full(F, 6), rng.integers(0, 64, F))
+    flops, nbytes = cost["flops"] / F, cost["bytes accessed"] / F
+    return {
+        "bucket_intervals": F, "flops_per_interval": flops, "bytes_per_interval": nbytes,
+        "arithmetic_intensity_flops_per_byte": flops / nbytes, "peak_gflops_nominal": peak_gflops,
+        "boxes_padded_to": int(batch.box_lo.shape[1]), "device": str(jax.devices()[0]),
+    }
+
+
+def section_reference(robot, capsules, trajs, scenes, larc_s: float) -> dict:
+    from larc_jax import certify
+
+    res, t = _timed(lambda: certify(trajs, scenes, robot, capsules, method="reference"))
+    return {"set_s": t, "evaluations": int(res.evaluations.sum()), "reference_over_larc": t / larc_s}
+
+
+def section_audit(larc_s: float) -> dict:
+    from experiments import audit
+
+    items = audit.dataset_items(STAGEB_DIR)
+    (rows), t = _timed(lambda: audit.audit_dataset(items, hz=250.0, workers=2))
+    states = sum(int(r["audit_states"]) for r in rows)
+    return {"set_s": t, "states": states, "workers": 2, "audit_over_larc": t / larc_s}
+
+
+def section_stream(robot, capsules, trajs, scenes, n: int) -> dict:
+    from larc_jax import certify_stream
+
+    list(certify_stream(stageB_like(robot, trajs, scenes, 256, seed=1), robot, capsules))  # compile
+    evals, start = 0, time.perf_counter()
+    for chunk in certify_stream(stageB_like(robot, trajs, scenes, n, seed=2), robot, capsules):
+        evals += int(chunk.evaluations.sum())
+    dt = time.perf_counter() - start
+    return {"n": n, "s": dt, "trajectories_per_s": n / dt, "intervals_per_s": evals / dt}
+
+
+def section_rss(ns: list[int], mode: str) -> list[dict]:
+    out = []
+    for n in ns:
+        cmd = [sys.executable, "-m", "experiments.bench_rss", "--n", str(n), "--mode", mode]
+        p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=dict(os.environ))
+        if p.returncode != 0:
+            out.append({"n": n, "mode": mode, "error": p.stderr.strip().splitlines()[-1:]})
+            continue
+        out.append(json.loads(p.stdout.strip().splitlines()[-1]))
+        print(f"  rss {mode:6s} n={n:>7d}: {out[-1]['peak_rss_mb']:.0f} MB, {out[-1]['s']:.1f} s", flush=True)
+    return out
+
+
+def _print(prefix: str, obj) -> None:
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _print(f"{prefix}.{k}" if prefix else k, v)
+    else:
+        print(f"{prefix:48s} {obj:.4g}" if isinstance(obj, float) else f"{prefix:48s} {obj}")
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--n", type=int, default=160, help="number of trajectories (default 160)")
     p.add_argument("--json", help="write the figures as JSON")
-    p.add_argument("--skip-reference", action="store_true", help="do not run the slow reference")
+    p.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
+    p.add_argument("--skip-reference", action="store_true")
+    p.add_argument("--skip-audit", action="store_true")
+    p.add_argument("--stream-n", type=int, default=4096)
+    p.add_argument("--rss-n", default="1000,10000,100000", help="comma-separated N for the RSS section ('' skips)")
+    p.add_argument("--peak-gflops", type=float, help="nominal float64 peak of the machine (module doc)")
     args = p.parse_args(argv)
 
-    robot = load_robot()
-    capsules = load_capsules(default_capsule_path(), robot)
-    trajs = synthetic_trajectories(robot, args.n)
+    import jax
 
-    def run(method):
-        return certify(trajs, WINDOW, robot, capsules, method=method)
+    import larc_jax as lj
+    from larc_jax.io import atomic_write_json
 
-    larc_first, t_larc_first = timed(lambda: run("larc"))
-    larc, t_larc = timed(lambda: run("larc"))
-    fine_first, t_fine_first = timed(lambda: run("fine"))
-    fine, t_fine = timed(lambda: run("fine"))
-    evals_larc = sum(r.evaluations for r in larc)
-    evals_fine = sum(r.evaluations for r in fine)
-    out = {
-        "n_trajectories": len(trajs),
-        "device": str(jax.devices()[0]),
-        "machine": platform.processor() or platform.machine(),
-        "larc_certified": sum(r.certified for r in larc),
-        "fine_certified": sum(r.certified for r in fine),
-        "larc_evaluations": evals_larc,
-        "fine_evaluations": evals_fine,
-        "larc_compile_s": max(0.0, t_larc_first - t_larc),
-        "larc_set_s": t_larc,
-        "larc_interval_evals_per_s": evals_larc / t_larc,
-        "fine_compile_s": max(0.0, t_fine_first - t_fine),
-        "fine_set_s": t_fine,
-        "fine_interval_evals_per_s": evals_fine / t_fine,
-        "larc_frontier_sizes": list(larc.frontier_sizes),
-    }
+    robot = lj.load_robot()
+    capsules = lj.load_capsules(lj.default_capsule_path(), robot)
+    trajs, scenes = stageB_dataset(robot)
+    if args.quick:
+        trajs, scenes = trajs[::8], scenes[::8]
+        args.stream_n, args.rss_n = 300, "300"
+    cores = os.cpu_count() or 1
+    peak = args.peak_gflops or cores * 2.6 * 16  # GHz of this machine's cores (lscpu), module doc
+    out = {"machine": {"processor": platform.processor() or platform.machine(), "cores": cores,
+                       "device": str(jax.devices()[0]), "jax": jax.__version__,
+                       "peak_gflops_float64_nominal": peak}}
+    t0 = time.perf_counter()
+    out["stageB"] = section_stageB(robot, capsules, trajs, scenes)
+    larc_s = out["stageB"]["larc"]["warm_s"]
+    out["kernel"] = section_kernel(robot, capsules, trajs, scenes, peak)
+    out["kernel"]["achieved_gflops_larc"] = (
+        out["kernel"]["flops_per_interval"] * out["stageB"]["larc"]["intervals_per_s"] / 1e9)
+    out["kernel"]["fraction_of_peak"] = out["kernel"]["achieved_gflops_larc"] / peak
     if not args.skip_reference:
-        ref, t_ref = timed(lambda: run("reference"))
-        assert [r.evaluations for r in ref] == [r.evaluations for r in larc]
-        assert [r.certified for r in ref] == [r.certified for r in larc]
-        out.update(reference_set_s=t_ref, reference_interval_evals_per_s=evals_larc / t_ref,
-                   speedup_reference_over_larc=t_ref / t_larc)
-    out["speedup_fine_over_larc"] = t_fine / t_larc
-    for k, v in out.items():
-        print(f"{k:32s} {v:.4g}" if isinstance(v, float) else f"{k:32s} {v}")
+        out["reference"] = section_reference(robot, capsules, trajs, scenes, larc_s)
+    if not args.skip_audit:
+        out["audit"] = section_audit(larc_s)
+    out["stream"] = section_stream(robot, capsules, trajs, scenes, args.stream_n)
+    ns = [int(x) for x in args.rss_n.split(",") if x.strip()]
+    out["rss"] = section_rss(ns, "call") + section_rss(ns, "stream")
+    out["bench_wall_s"] = time.perf_counter() - t0
+    _print("", out)
     if args.json:
         atomic_write_json(args.json, out)
     return 0

@@ -110,6 +110,18 @@ class Batch:
         """Interval ends from (trajectory, depth, index): :func:`dyadic_ends`."""
         return dyadic_ends(self.t_start[traj], self.t_end[traj], depth, index)
 
+    def _kernel_args(self, traj, a, b):
+        return (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi, self.box_mask,
+                traj, self.scene_of[traj], a.astype(self.dtype), b.astype(self.dtype), self.margin)
+
+    def cost_analysis(self, traj, depth, index) -> dict:
+        """XLA's cost analysis (``flops``, ``bytes accessed``, ...) of the compiled kernel for
+        these intervals (one call, no padding): for benchmarks."""
+        a, b = self.endpoints(traj, depth, index)
+        with jax.enable_x64(self.dtype == np.float64):
+            cost = _evaluate_intervals.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
+        return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
+
     def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None):
         """``(a, b, g, capsule, box)`` for every interval (NumPy arrays)."""
         a, b = self.endpoints(traj, depth, index)
