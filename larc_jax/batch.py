@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 from .enclosure.capsule import CapsuleModel
-from .hermite import HermiteSpline, pad_waypoints
+from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import coordinate_scale, evaluate_interval, rounding_guard
 from .robot import Robot
 from .scene import Scene, pad_scenes
@@ -61,7 +61,7 @@ def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, traj
     Only ``(g, capsule, box)`` leave the call (XLA drops the record's other fields)."""
 
     def one(k, s, ai, bi):
-        spline = jax.tree.map(lambda x: x[k], splines)
+        spline = SplineRow(splines, k)  # read in place, not copied per interval
         ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin)
         return ev.g, ev.capsule, ev.box
 

@@ -76,40 +76,45 @@ def segment_box_distance(p0, p1, lo, hi) -> jax.Array:
     p0, p1, lo, hi = (jnp.asarray(v) for v in (p0, p1, lo, hi))
     # A weak Python float keeps float32 inputs float32 and turns integer inputs into floats.
     dtype = jnp.result_type(p0, p1, lo, hi, 0.0)
-    p0, p1, lo, hi = (v.astype(dtype) for v in (p0, p1, lo, hi))
+    # Written axis by axis and candidate by candidate on scalars (no (8, 3) intermediates and
+    # no reductions over tiny axes): batched with vmap, every operation is elementwise over the
+    # batch, so XLA fuses the whole kernel into one pass over the pairs (arithmetic, not
+    # memory traffic). The computation is the one the module docstring proves exact.
+    P0, P1, LO, HI = ([v[i].astype(dtype) for i in range(3)] for v in (p0, p1, lo, hi))
+    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
+    d = [P1[i] - P0[i] for i in range(3)]
+    moving = [d[i] != 0 for i in range(3)]
+    forward = [d[i] > 0 for i in range(3)]
+    e_lo = [LO[i] - P0[i] for i in range(3)]  # targets of the "below" / "above" states
+    e_hi = [HI[i] - P0[i] for i in range(3)]
+    safe_d = [jnp.where(moving[i], d[i], one) for i in range(3)]  # avoid 0/0; discarded for d_i = 0
+    t_lo = [jnp.where(moving[i], e_lo[i] / safe_d[i], zero) for i in range(3)]  # x_i(t) = lo_i
+    t_hi = [jnp.where(moving[i], e_hi[i] / safe_d[i], zero) for i in range(3)]  # x_i(t) = hi_i
 
-    d = p1 - p0
-    moving = d != 0
-    safe_d = jnp.where(moving, d, 1)  # avoid 0/0; the values for d_i = 0 are discarded
-    t_lo = jnp.where(moving, (lo - p0) / safe_d, 0)  # (3,) where x_i(t) = lo_i
-    t_hi = jnp.where(moving, (hi - p0) / safe_d, 0)  # (3,) where x_i(t) = hi_i
-
-    ends = jnp.array([0, 1], dtype)
-    c = jnp.clip(jnp.concatenate([ends, t_lo, t_hi]), 0, 1)  # (8,) candidate set S
-
-    # Per-axis state on (c, c + eps), decided against the breakpoints (not against x(c)) so
-    # that ties are broken by the direction of travel; see the module docstring.
-    cc = c[:, None]  # (8, 1)
-    forward = d > 0
-    below = moving & jnp.where(forward, cc < t_lo, cc >= t_lo)  # (8, 3)
-    above = moving & jnp.where(forward, cc >= t_hi, cc < t_hi)  # (8, 3)
-    target = jnp.where(below, lo - p0, jnp.where(above, hi - p0, 0))
-    active = below | above
-
-    # Stationary point of q(t) = sum_active (d_i t - e_i)^2.
-    num = jnp.sum(jnp.where(active, d * target, 0), axis=-1)  # (8,)
-    den = jnp.sum(jnp.where(active, d * d, 0), axis=-1)  # (8,)
-    curved = den > 0
-    t_star = num / jnp.where(curved, den, 1)
-    # Clip to [c, 1]; written with comparisons (False for NaN) so that an overflowing
-    # num/den (only possible for astronomically large inputs) falls back to c instead of NaN.
-    t_star = jnp.where(curved & (t_star > c), jnp.where(t_star < 1, t_star, 1), c)
-
-    # True f at each point. The lerp form reproduces p0 and p1 exactly at t = 0 and t = 1.
-    t = t_star[:, None]
-    x = (1 - t) * p0 + t * p1  # (8, 3)
-    gap = jnp.maximum(jnp.maximum(lo - x, x - hi), 0)
-    f_min = jnp.min(jnp.sum(gap * gap, axis=-1))
+    f_min = None
+    for c in [zero, one] + [jnp.clip(t, zero, one) for t in t_lo + t_hi]:  # the candidate set S
+        num = den = zero
+        for i in range(3):
+            # State on (c, c + eps), decided against the breakpoints (not against x(c)) so
+            # that ties are broken by the direction of travel; see the module docstring.
+            below = moving[i] & jnp.where(forward[i], c < t_lo[i], c >= t_lo[i])
+            above = moving[i] & jnp.where(forward[i], c >= t_hi[i], c < t_hi[i])
+            active = below | above
+            target = jnp.where(below, e_lo[i], jnp.where(above, e_hi[i], zero))
+            # Stationary point of q(t) = sum_active (d_i t - e_i)^2.
+            num = num + jnp.where(active, d[i] * target, zero)
+            den = den + jnp.where(active, d[i] * d[i], zero)
+        curved = den > 0
+        t_star = num / jnp.where(curved, den, one)
+        # Clip to [c, 1]; written with comparisons (False for NaN) so that an overflowing
+        # num/den (only possible for astronomically large inputs) falls back to c instead of NaN.
+        t_star = jnp.where(curved & (t_star > c), jnp.where(t_star < 1, t_star, one), c)
+        f = zero
+        for i in range(3):
+            x = (1 - t_star) * P0[i] + t_star * P1[i]  # lerp: exactly p0 / p1 at t = 0 / 1
+            gap = jnp.maximum(jnp.maximum(LO[i] - x, x - HI[i]), zero)
+            f = f + gap * gap
+        f_min = f if f_min is None else jnp.minimum(f_min, f)
     return jnp.sqrt(f_min)  # f_min >= 0: a sum of squares
 
 

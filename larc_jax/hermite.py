@@ -65,6 +65,7 @@ from .errors import LarcInputError
 
 __all__ = [
     "HermiteSpline",
+    "SplineRow",
     "num_table_levels",
     "pad_waypoints",
     "batch_from_waypoints",
@@ -179,6 +180,18 @@ class HermiteSpline:
         """``K`` (static, from the array shape; padding segments included)."""
         return self.t_knots.shape[-1] - 1
 
+    # Element access used by the single-item kernels. :class:`SplineRow` offers the same
+    # methods for one spline of a batch, read in place.
+    def knots(self):
+        return self.t_knots
+
+    def knot(self, i):
+        """``(t_i, q_i, qd_i)``."""
+        return self.t_knots[i], self.q_knots[i], self.qd_knots[i]
+
+    def table(self, level, i):
+        return self.speed_table[level, i]
+
     @property
     def num_joints(self) -> int:
         """``n`` (static)."""
@@ -207,6 +220,41 @@ class HermiteSpline:
         q = q.astype(dtype)
         qd = qd.astype(dtype)
         return cls(t_knots=t, q_knots=q, qd_knots=qd, speed_table=_build_speed_table(t, q, qd))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SplineRow:
+    """Spline ``k`` of a batched :class:`HermiteSpline`, read in place.
+
+    The single-item kernels (:func:`evaluate`, :func:`speed_max`) only read a spline through
+    ``knots()``, ``knot(i)`` and ``table(level, i)``. Mapped over intervals with ``jax.vmap``,
+    ``batch[k]`` would first copy each interval's whole spline (all knots and the whole sparse
+    table: hundreds of KB per interval for long trajectories); a row reads just the elements
+    the kernel touches (two-index gathers), which keeps the interval kernel compute-bound.
+    """
+
+    batch: HermiteSpline
+    k: jax.Array
+    """Index of the spline in the batch (scalar int)."""
+
+    @property
+    def num_segments(self) -> int:
+        return self.batch.t_knots.shape[-1] - 1
+
+    @property
+    def num_joints(self) -> int:
+        return self.batch.q_knots.shape[-1]
+
+    def knots(self):
+        return self.batch.t_knots[self.k]
+
+    def knot(self, i):
+        b = self.batch
+        return b.t_knots[self.k, i], b.q_knots[self.k, i], b.qd_knots[self.k, i]
+
+    def table(self, level, i):
+        return self.batch.speed_table[self.k, level, i]
 
 
 # ------------------------------------------------------------------------------------------
@@ -280,15 +328,14 @@ def evaluate(spline: HermiteSpline, t):
     before ``t_0``, segment ``K-1`` after ``t_K``), like SciPy's ``extrapolate=True``. For a
     padded spline, times after the original ``t_K`` fall in the padding segments.
     """
-    tk = spline.t_knots
+    tk = spline.knots()
     K = tk.shape[0] - 1
     t = jnp.asarray(t, dtype=tk.dtype)
     k = jnp.clip(jnp.searchsorted(tk, t, side="right").astype(jnp.int32) - 1, 0, K - 1)
-    t0 = tk[k]
-    h = tk[k + 1] - t0
+    t0, q0, v0 = spline.knot(k)
+    t1, q1, v1 = spline.knot(k + 1)
+    h = t1 - t0
     s = (t - t0) / h
-    q0, q1 = spline.q_knots[k], spline.q_knots[k + 1]
-    v0, v1 = spline.qd_knots[k], spline.qd_knots[k + 1]
     one = jnp.ones_like(s)
     om = one - s
     h00 = (one + 2 * s) * om * om
@@ -318,10 +365,9 @@ def speed_max(spline: HermiteSpline, a, b):
     contribute ``max(T[l, ia+1], T[l, ib - 2**l])`` with ``l = floor(log2 c)`` from the sparse
     table (masked out when ``c = 0``). Cost is O(n) plus the two binary searches.
     """
-    tk = spline.t_knots
+    tk = spline.knots()
     K = tk.shape[0] - 1
-    table = spline.speed_table
-    L = table.shape[0]
+    L = num_table_levels(K)
     dtype = tk.dtype
     a = jnp.asarray(a, dtype=dtype)
     b = jnp.asarray(b, dtype=dtype)
@@ -332,9 +378,9 @@ def speed_max(spline: HermiteSpline, a, b):
     same = ia == ib
 
     def seg(k):
-        t0 = tk[k]
-        h = tk[k + 1] - t0
-        return t0, h, spline.q_knots[k], spline.qd_knots[k], spline.q_knots[k + 1], spline.qd_knots[k + 1]
+        t0, q0, v0 = spline.knot(k)
+        t1, q1, v1 = spline.knot(k + 1)
+        return t0, t1 - t0, q0, v0, q1, v1
 
     ta, ha, qa0, va0, qa1, va1 = seg(ia)
     tb, hb, qb0, vb0, qb1, vb1 = seg(ib)
@@ -354,7 +400,7 @@ def speed_max(spline: HermiteSpline, a, b):
     pow2 = jnp.left_shift(jnp.ones_like(count), lvl)
     i_lo = jnp.clip(ia + 1, 0, K - 1)
     i_hi = jnp.clip(ib - pow2, 0, K - 1)  # (ib - 1) - 2**l + 1
-    w_mid = jnp.maximum(table[lvl, i_lo], table[lvl, i_hi])
+    w_mid = jnp.maximum(spline.table(lvl, i_lo), spline.table(lvl, i_hi))
     w_mid = jnp.where(count > 0, w_mid, jnp.zeros_like(w_mid))
 
     return jnp.maximum(jnp.maximum(w_first, w_last), w_mid)
