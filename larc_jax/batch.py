@@ -13,6 +13,10 @@ by the same kernel on one device, so results are identical to a single-device ru
 
 Interval ends are exact dyadic fractions of the horizon (:func:`dyadic_ends`), shared by every
 certifier: neighbours compute their common end from the same fraction, so a cover has no gaps.
+They are computed in each trajectory's own time axis (what a leaf reports) and handed to the
+kernel rebased with outward rounding (:func:`~larc_jax.interval.rebase_ends`, budget T1).
+Geometry arrays are cast to the geometry dtype (boxes rounded outwards); times, splines and the
+per-trajectory rounding bounds are float64.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 
 from .enclosure.capsule import CapsuleModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
-from .interval import coordinate_scale, evaluate_interval, rounding_guard
+from .interval import RoundingBounds, evaluate_interval, rebase_ends
 from .robot import Robot
 from .scene import Scene, pad_scenes
 
@@ -56,14 +60,15 @@ def dyadic_ends(t_start, t_end, depth, index):
 
 
 @jax.jit
-def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, traj, scene, a, b, margin):
+def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
     """Evaluate F intervals: interval i belongs to trajectory ``traj[i]`` in scene ``scene[i]``.
-    Only ``(g, capsule, box)`` leave the call (XLA drops the record's other fields)."""
+    Only ``(g, guard, capsule, box)`` leave the call (XLA drops the record's other fields)."""
 
     def one(k, s, ai, bi):
         spline = SplineRow(splines, k)  # read in place, not copied per interval
-        ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin)
-        return ev.g, ev.capsule, ev.box
+        bnd = jax.tree.map(lambda x: x[k], bounds)
+        ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
+        return ev.g, ev.guard, ev.capsule, ev.box
 
     return jax.vmap(one)(traj, scene, a, b)
 
@@ -71,10 +76,24 @@ def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, traj
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
 
 
-def _cast(tree, dtype):
-    return jax.tree.map(
-        lambda x: np.asarray(x, dtype) if np.issubdtype(np.asarray(x).dtype, np.floating) else x, tree
-    )
+def _geometry(robot: Robot, capsules: CapsuleModel, dtype):
+    """Robot and capsule arrays in the geometry dtype; radii and motion constants stay float64
+    (they enter the float64 sums, budget P3/G4)."""
+    cast = lambda x: np.asarray(x, dtype) if np.issubdtype(np.asarray(x).dtype, np.floating) else x  # noqa: E731
+    robot_g = jax.tree.map(cast, robot)
+    capsules_g = dataclasses.replace(
+        capsules, p_link_a=cast(capsules.p_link_a), p_link_b=cast(capsules.p_link_b),
+        radius=np.asarray(capsules.radius, np.float64), motion_a=np.asarray(capsules.motion_a, np.float64))
+    return robot_g, capsules_g
+
+
+def _boxes_outward(lo: np.ndarray, hi: np.ndarray, dtype):
+    """Box corners in ``dtype``, rounded outwards so the box tested contains the user's (G3)."""
+    lo_g, hi_g = lo.astype(dtype), hi.astype(dtype)
+    inf = np.asarray(np.inf, dtype)
+    lo_g = np.where(lo_g > lo, np.nextafter(lo_g, -inf), lo_g)
+    hi_g = np.where(hi_g < hi, np.nextafter(hi_g, inf), hi_g)
+    return lo_g, hi_g
 
 
 @dataclasses.dataclass
@@ -84,15 +103,19 @@ class Batch:
     robot: Robot
     capsules: CapsuleModel
     splines: HermiteSpline
+    """Splines on rebased knots (float64), padded."""
+    bounds: RoundingBounds
+    """Per-trajectory rounding bounds, stacked (leading axis = trajectory)."""
     box_lo: np.ndarray
     box_hi: np.ndarray
     box_mask: np.ndarray
     scene_of: np.ndarray
     t_start: np.ndarray
+    """Horizon start per trajectory, in its own time axis, s."""
     t_end: np.ndarray
     margin: np.ndarray
     dtype: np.dtype
-    guard: float
+    """Geometry dtype (times and the curve are always float64)."""
     devices: tuple = ()
     """Devices the interval axis is sharded over (one device: no sharding)."""
 
@@ -110,26 +133,31 @@ class Batch:
         """Interval ends from (trajectory, depth, index): :func:`dyadic_ends`."""
         return dyadic_ends(self.t_start[traj], self.t_end[traj], depth, index)
 
+    def _rebased(self, traj, a, b):
+        """Interval ends as the kernel takes them: rebased, rounded outwards (budget T1)."""
+        return rebase_ends(a, b, np.asarray(self.bounds.offset_s)[traj])
+
     def _kernel_args(self, traj, a, b):
-        return (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi, self.box_mask,
-                traj, self.scene_of[traj], a.astype(self.dtype), b.astype(self.dtype), self.margin)
+        ar, br = self._rebased(traj, a, b)
+        return (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi, self.box_mask, self.bounds,
+                traj, self.scene_of[traj], ar, br, self.margin)
 
     def cost_analysis(self, traj, depth, index) -> dict:
         """XLA's cost analysis (``flops``, ``bytes accessed``, ...) of the compiled kernel for
         these intervals (one call, no padding): for benchmarks."""
         a, b = self.endpoints(traj, depth, index)
-        with jax.enable_x64(self.dtype == np.float64):
+        with jax.enable_x64(True):
             cost = _evaluate_intervals.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
         return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
 
     def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None):
-        """``(a, b, g, capsule, box)`` for every interval (NumPy arrays)."""
+        """``(a, b, g, guard, capsule, box)`` for every interval (NumPy arrays; ``a, b`` in the
+        trajectory's own time axis)."""
         a, b = self.endpoints(traj, depth, index)
-        if self.dtype == np.float32:  # round outwards so float32 intervals still cover I
-            a = np.nextafter(a.astype(np.float32), np.float32(-np.inf))
-            b = np.nextafter(b.astype(np.float32), np.float32(np.inf))
+        ar, br = self._rebased(traj, a, b)
         F = len(traj)
         g = np.empty(F)
+        guard = np.empty(F)
         cap = np.empty(F, np.int64)
         box = np.empty(F, np.int64)
         for start in range(0, F, BUCKETS[-1]):
@@ -140,24 +168,26 @@ class Batch:
             sl = slice(start, stop)
             # Padding repeats the chunk's first interval; its results are dropped below.
             tr = np.concatenate([traj[sl], np.repeat(traj[start], pad)])
-            aa = np.concatenate([a[sl], np.repeat(a[start], pad)]).astype(self.dtype)
-            bb = np.concatenate([b[sl], np.repeat(b[start], pad)]).astype(self.dtype)
-            with jax.enable_x64(self.dtype == np.float64):
+            aa = np.concatenate([ar[sl], np.repeat(ar[start], pad)])
+            bb = np.concatenate([br[sl], np.repeat(br[start], pad)])
+            with jax.enable_x64(True):
                 tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
                 out = _evaluate_intervals(
                     self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
-                    self.box_mask, tr_s, sc_s, aa, bb, self.margin,
+                    self.box_mask, self.bounds, tr_s, sc_s, aa, bb, self.margin,
                 )
-                gg, cc, bx = (np.asarray(x) for x in out)
-            g[sl], cap[sl], box[sl] = gg[: stop - start], cc[: stop - start], bx[: stop - start]
+                gg, gd, cc, bx = (np.asarray(x) for x in out)
+            n = stop - start
+            g[sl], guard[sl], cap[sl], box[sl] = gg[:n], gd[:n], cc[:n], bx[:n]
             if on_chunk:
-                on_chunk(stop - start)
-        return a, b, g, cap, box
+                on_chunk(n)
+        return a, b, g, guard, cap, box
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
-            margin: float, dtype, devices=None) -> Batch:
-    """Pad a validated dataset into a :class:`Batch` (one scene per trajectory).
+            margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None) -> Batch:
+    """Pad a validated dataset into a :class:`Batch` (one scene and one
+    :func:`~larc_jax.interval.trajectory_rounding` per trajectory).
 
     ``devices``: the devices to shard each interval batch over (default: every device of JAX's
     default backend, e.g. all local GPUs; on a CPU, one device unless XLA is asked for more).
@@ -167,23 +197,22 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     # are never touched by an interval inside the horizon (hermite.pad_waypoints), padded
     # trajectories and scenes repeat the first one and are never indexed by an interval.
     n_knots = size_class(max(t.n_waypoints for t in trajectories), 16)
-    padded = [pad_waypoints(t.t, t.q, t.qd, n_knots) for t in trajectories]
-    padded += padded[:1] * (size_class(len(padded), 1) - len(padded))
+    padded = [pad_waypoints(t.t - float(bd.offset_s), t.q, t.qd, n_knots) for t, bd in zip(trajectories, bounds)]
+    n_pad = size_class(len(padded), 1) - len(padded)
+    padded += padded[:1] * n_pad
+    stacked = jax.tree.map(lambda *x: np.stack(x), *(list(bounds) + list(bounds[:1]) * n_pad))
     unique = list(dict.fromkeys(id(s) for s in scenes))
     scene_list = [next(s for s in scenes if id(s) == u) for u in unique]
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
     lo, hi, mask = pad_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)))
-    with jax.enable_x64(dtype == np.float64):
-        splines = _build_splines(
-            np.stack([p[0] for p in padded]).astype(dtype),
-            np.stack([p[1] for p in padded]).astype(dtype),
-            np.stack([p[2] for p in padded]).astype(dtype),
-        )
+    with jax.enable_x64(True):
+        splines = _build_splines(*(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)))
+    robot_g, capsules_g = _geometry(robot, capsules, dtype)
+    box_lo, box_hi = _boxes_outward(lo, hi, dtype)
     return Batch(
-        robot=_cast(robot, dtype), capsules=_cast(capsules, dtype), splines=splines,
-        box_lo=lo.astype(dtype), box_hi=hi.astype(dtype), box_mask=mask, scene_of=scene_of,
+        robot=robot_g, capsules=capsules_g, splines=splines, bounds=stacked,
+        box_lo=box_lo, box_hi=box_hi, box_mask=mask, scene_of=scene_of,
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
-        margin=np.asarray(margin, dtype), dtype=dtype,
-        guard=rounding_guard(dtype, coordinate_scale(scene_list, robot, capsules)),
+        margin=np.asarray(margin, np.float64), dtype=dtype,
         devices=tuple(jax.devices() if devices is None else devices),
     )

@@ -1,7 +1,9 @@
 """The certifiers: reference (Algorithm 1), batched LARC, fixed-resolution; and ``certify``.
 
 All of them run the same interval test (:mod:`larc_jax.interval`) on exact dyadic intervals
-(:func:`larc_jax.batch.dyadic_ends`) and compare ``g(I)`` with the same rounding guard:
+(:func:`larc_jax.batch.dyadic_ends`) with the same per-trajectory rounding bounds
+(:func:`larc_jax.interval.trajectory_rounding`: rebase offset, time and speed slack, the guard of
+every capsule); a leaf passes iff its recorded clearance exceeds its recorded guard:
 
 * ``reference`` — Algorithm 1 of the paper, depth first, one trajectory, NumPy float64
   references of every kernel. Slow; the ground truth for tests.
@@ -26,7 +28,7 @@ from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
                        check_margin)
 from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
-from .interval import coordinate_scale, evaluate_interval_np, rounding_guard
+from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
@@ -68,13 +70,13 @@ class _Names:
         self.has_boxes = np.array([s.n_boxes > 0 for s in scenes], bool)
 
 
-def _leaf_table(names: _Names, traj, depth, index, a, b, g, cap, box, passed) -> LeafTable:
+def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, passed) -> LeafTable:
     traj = np.asarray(traj, np.int64)
     has = names.has_boxes[traj]
     return LeafTable(
         traj=traj, depth=np.asarray(depth, np.int16), index=np.asarray(index, np.int64),
         t0=np.asarray(a, np.float64), t1=np.asarray(b, np.float64), clearance_m=np.asarray(g, np.float64),
-        certified=np.asarray(passed, bool),
+        guard_m=np.asarray(guard, np.float64), certified=np.asarray(passed, bool),
         capsule=np.where(has, np.asarray(cap, np.int64), -1).astype(np.int32),
         box=np.where(has, names.offset[traj] + np.asarray(box, np.int64), -1).astype(np.int32),
     )
@@ -90,11 +92,11 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress)
             break
         depth = np.full(len(traj), d)
         frontier[:, d] = np.bincount(traj, minlength=n_traj)
-        a, b, g, cap, box = batch.evaluate(traj, depth, index, progress)
-        passed = g > batch.guard  # NaN compares False: never certifies
+        a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress)
+        passed = g > guard  # NaN compares False: never certifies
         final = passed | (d == max_depth)
         parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], g[final],
-                                 cap[final], box[final], passed[final]))
+                                 guard[final], cap[final], box[final], passed[final]))
         open_ = ~final
         traj = np.repeat(traj[open_], 2)
         index = np.stack([2 * index[open_], 2 * index[open_] + 1], axis=1).reshape(-1)
@@ -106,35 +108,36 @@ def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, pro
     traj = np.repeat(np.arange(n_traj, dtype=np.int64), m)
     index = np.tile(np.arange(m, dtype=np.int64), n_traj)
     depth = np.full(len(traj), depth_fixed)
-    a, b, g, cap, box = batch.evaluate(traj, depth, index, progress)
-    passed = g > batch.guard
+    a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress)
+    passed = g > guard
     frontier = np.zeros((n_traj, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
-    return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, g, cap, box, passed)])
+    return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, g, guard, cap, box,
+                                                        passed)])
 
 
-def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max_depth, guard, progress):
+def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max_depth, bounds, progress):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
-    rows = []  # (traj, depth, index, a, b, g, capsule, box, passed)
-    for k, (traj, scene) in enumerate(zip(trajectories, scenes)):
+    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, passed)
+    for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
         ts, te = float(traj.t[0]), float(traj.t[-1])
 
         def certify_node(d: int, i: int) -> bool:  # Algorithm 1
             a, b = (float(x) for x in dyadic_ends(ts, te, d, i))
             frontier[k, d] += 1
-            ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin)
+            ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bnd)
             if progress:
                 progress(1)
-            passed = ev.g > guard
+            passed = ev.g > ev.guard
             if passed or d == max_depth:
-                rows.append((k, d, i, a, b, ev.g, ev.capsule, ev.box, passed))
+                rows.append((k, d, i, a, b, ev.g, ev.guard, ev.capsule, ev.box, passed))
                 return bool(passed)
             left = certify_node(d + 1, 2 * i)
             right = certify_node(d + 1, 2 * i + 1)
             return left and right
 
         certify_node(0, 0)
-    cols = list(zip(*rows)) if rows else [[]] * 9
+    cols = list(zip(*rows)) if rows else [[]] * 10
     return frontier, LeafTable.concatenate([_leaf_table(names, *cols)])
 
 
@@ -180,8 +183,9 @@ def certify(
       method: ``larc`` (batched adaptive), ``fine`` (all ``2**max_depth`` intervals),
         ``coarse`` (all ``2**coarse_depth``), ``reference`` (Algorithm 1 in NumPy).
       margin: clearance margin rho, m.
-      dtype: float64 (default) or float32 (with the float32 rounding guard; see
-        :mod:`larc_jax.interval`).
+      dtype: geometry dtype, float64 (default) or float32: forward kinematics and distances in
+        that dtype (times, the curve and the sums stay float64; the guard accounts for it, see
+        :mod:`larc_jax.interval`). ``method="reference"`` is always float64.
       progress: called with the number of intervals evaluated after each chunk.
       devices: JAX devices to shard the intervals over (default: all devices of the default
         backend; see :mod:`larc_jax.batch`). Results do not depend on it.
@@ -199,23 +203,24 @@ def certify(
     start = time.perf_counter()
     names = _Names(scenes)
     if method == Method.REFERENCE:
-        guard = rounding_guard(np.float64, coordinate_scale(scenes, robot, capsules))
-        frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, guard,
+        dtype = np.float64  # the reference is NumPy float64
+    bounds = [trajectory_rounding(t, robot, capsules, dtype) for t in trajectories]
+    if method == Method.REFERENCE:
+        frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, bounds,
                                       progress)
     else:
-        batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, devices)
-        guard = batch.guard
+        batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices)
         if method == Method.LARC:
             frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress)
         else:
             depth = max_depth if method == Method.FINE else coarse_depth
             frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress)
     wall = time.perf_counter() - start
-    return _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves,
-                           np.full(len(trajectories), guard), float(margin), max_depth, wall)
+    return _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
+                           float(margin), max_depth, wall)
 
 
-def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, guard,
+def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, bounds,
                     margin, max_depth, wall) -> DatasetResult:
     n = len(trajectories)
     bad = np.bincount(leaves.traj, weights=~leaves.certified, minlength=n) > 0
@@ -226,6 +231,7 @@ def _dataset_result(method, trajectories, scenes, names, capsules, frontier, lea
         method=method, ids=tuple(t.id for t in trajectories), scene_names=tuple(s.name for s in scenes),
         certified=~bad, evaluations=frontier.sum(axis=1), frontier=frontier,
         min_clearance_m=np.where(nan, np.nan, g_min), duration_s=np.array([t.duration for t in trajectories]),
-        guard_m=np.asarray(guard, np.float64), leaves=leaves, capsule_names=tuple(capsules.names),
-        box_names=names.box_names, margin_m=margin, max_depth=max_depth, wall_time_s=wall,
+        guard_m=np.array([np.max(b.guard_m) for b in bounds], np.float64), leaves=leaves,
+        capsule_names=tuple(capsules.names), box_names=names.box_names, margin_m=margin, max_depth=max_depth,
+        wall_time_s=wall, time_offset_s=np.array([float(b.offset_s) for b in bounds], np.float64),
     )

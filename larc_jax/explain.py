@@ -34,7 +34,7 @@ import numpy as np
 from .enclosure.capsule import CapsuleModel, capsule_segments_np
 from .errors import LarcInputError
 from .hermite import evaluate_np
-from .interval import evaluate_interval_np
+from .interval import evaluate_interval_np, trajectory_rounding
 from .io import atomic_write_bytes
 from .results import Leaf, TrajectoryResult
 from .robot import Robot
@@ -54,7 +54,7 @@ class Explanation:
     leaf: Leaf
     t_mid: float
     h: float
-    """Half-width of the interval, s."""
+    """Covering half-width of the interval (what the motion radius used), s."""
     q_mid: np.ndarray
     """(n,) configuration at the interval midpoint."""
     seg_a: np.ndarray
@@ -155,7 +155,8 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
     ``traj`` must already be in the robot's joint order (``read_trajectory(path, robot)``).
     """
     leaf = leaf or choose_leaf(result)
-    ev = evaluate_interval_np(robot, capsules, traj, scene, leaf.t0, leaf.t1, result.margin_m)
+    bounds = trajectory_rounding(traj, robot, capsules)
+    ev = evaluate_interval_np(robot, capsules, traj, scene, leaf.t0, leaf.t1, result.margin_m, bounds)
     c, k = int(ev.capsule), int(ev.box)
     closest, dist = None, math.nan
     if scene.n_boxes:
@@ -164,7 +165,8 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
     else:
         c = k = -1
     return Explanation(
-        trajectory_id=result.id, certified=result.certified, leaf=leaf, t_mid=float(ev.t_mid), h=float(ev.h),
+        trajectory_id=result.id, certified=result.certified, leaf=leaf, t_mid=float(ev.t_mid) + float(bounds.offset_s),
+        h=float(ev.h_cov),
         q_mid=ev.q_mid, seg_a=ev.p_world_a, seg_b=ev.p_world_b, radius=np.asarray(capsules.radius, np.float64),
         motion_b=ev.motion_b, margin_m=float(result.margin_m), clearance_m=float(ev.g), capsule=c,
         box=k, distance_m=dist, closest=closest,

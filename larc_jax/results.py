@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS"]
 
-LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "certified", "capsule", "box")
+LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box")
 """Columns of :meth:`DatasetResult.leaves_dataframe` (and of ``larc certify --leaves``)."""
 
 RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "duration_s",
@@ -37,11 +37,15 @@ class Leaf:
     index: int
     """Position among the ``2**depth`` intervals of that depth."""
     t0: float
+    """Start, s, in the trajectory's own time axis (the leaves tile its horizon exactly)."""
     t1: float
     clearance_m: float
-    """g(I), m (inf without boxes, nan on non-finite values)."""
+    """g of the recorded capsule/box pair, m (inf without boxes, nan on non-finite values)."""
+    guard_m: float
+    """Rounding guard of that pair, m: ``certified == (clearance_m > guard_m)``."""
     certified: bool
     capsule: str
+    """The recorded pair: the one minimising clearance - guard over all pairs."""
     box: str
 
 
@@ -60,6 +64,8 @@ class LeafTable:
     t0: np.ndarray
     t1: np.ndarray
     clearance_m: np.ndarray
+    guard_m: np.ndarray
+    """Rounding guard of the recorded pair: ``certified == (clearance_m > guard_m)``."""
     certified: np.ndarray
     capsule: np.ndarray
     box: np.ndarray
@@ -94,7 +100,10 @@ class TrajectoryResult:
     max_depth: int = -1
     """The deepest bisection allowed."""
     guard_m: float = float("nan")
-    """The rounding guard every leaf's clearance was compared against, m."""
+    """The largest rounding guard of this trajectory (over its capsules), m; each leaf records
+    the one it was compared against."""
+    time_offset_s: float = 0.0
+    """Offset subtracted (exactly) from every time before evaluation (budget T1), s."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -120,13 +129,16 @@ class DatasetResult:
     duration_s: np.ndarray
     """(N,) trajectory durations, s."""
     guard_m: np.ndarray
-    """(N,) rounding guard each trajectory's leaves were compared against, m."""
+    """(N,) largest rounding guard of each trajectory (over its capsules), m; each leaf
+    records the one it was compared against."""
     leaves: LeafTable
     capsule_names: tuple[str, ...]
     box_names: tuple[str, ...]
     margin_m: float
     max_depth: int
     wall_time_s: float
+    time_offset_s: np.ndarray | None = None
+    """(N,) offset subtracted (exactly) from each trajectory's times (budget T1), s; None: 0."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
@@ -144,7 +156,7 @@ class DatasetResult:
         c, b = int(lv.capsule[row]), int(lv.box[row])
         return Leaf(depth=int(lv.depth[row]), index=int(lv.index[row]), t0=float(lv.t0[row]),
                     t1=float(lv.t1[row]), clearance_m=float(lv.clearance_m[row]),
-                    certified=bool(lv.certified[row]),
+                    guard_m=float(lv.guard_m[row]), certified=bool(lv.certified[row]),
                     capsule=self.capsule_names[c] if c >= 0 else "", box=self.box_names[b] if b >= 0 else "")
 
     def trajectory(self, i: int) -> TrajectoryResult:
@@ -157,6 +169,7 @@ class DatasetResult:
             leaves=tuple(self._leaf(r) for r in range(sl.start, sl.stop)),
             duration_s=float(self.duration_s[i]), scene=self.scene_names[i], margin_m=self.margin_m,
             max_depth=self.max_depth, guard_m=float(self.guard_m[i]),
+            time_offset_s=0.0 if self.time_offset_s is None else float(self.time_offset_s[i]),
         )
 
     @functools.cached_property
@@ -219,6 +232,7 @@ class DatasetResult:
         return pd.DataFrame({
             "id": np.array(self.ids, dtype=object)[lv.traj] if len(lv) else np.zeros(0, object),
             "depth": lv.depth.astype(np.int64), "index": lv.index.astype(np.int64),
-            "t0": lv.t0, "t1": lv.t1, "clearance_m": lv.clearance_m, "certified": lv.certified.astype(bool),
+            "t0": lv.t0, "t1": lv.t1, "clearance_m": lv.clearance_m, "guard_m": lv.guard_m,
+            "certified": lv.certified.astype(bool),
             "capsule": names[lv.capsule + 1], "box": boxes[lv.box + 1],
         }, columns=list(LEAF_COLUMNS))

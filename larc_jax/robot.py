@@ -112,6 +112,12 @@ class Robot:
 # ----------------------------------------------------------------------------------------------
 
 
+def _matmul(a, b):
+    """Full-precision product (float32 products on GPUs default to TF32, which the rounding
+    guard of :mod:`larc_jax.interval` does not cover)."""
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
 def _joint_motion(jtype: JointType, axis: jax.Array, value: jax.Array) -> jax.Array:
     """4×4 motion of a joint about/along its unit ``axis`` by ``value`` (Rodrigues' formula)."""
     dtype = axis.dtype
@@ -122,7 +128,7 @@ def _joint_motion(jtype: JointType, axis: jax.Array, value: jax.Array) -> jax.Ar
     x, y, z = axis[0], axis[1], axis[2]
     zero = jnp.zeros((), dtype)
     K = jnp.array([[zero, -z, y], [z, zero, -x], [-y, x, zero]])
-    R = jnp.eye(3, dtype=dtype) + jnp.sin(value) * K + (1.0 - jnp.cos(value)) * (K @ K)
+    R = jnp.eye(3, dtype=dtype) + jnp.sin(value) * K + (1.0 - jnp.cos(value)) * _matmul(K, K)
     return jnp.eye(4, dtype=dtype).at[:3, :3].set(R)
 
 
@@ -147,7 +153,7 @@ def forward_kinematics(robot: Robot, q: jax.Array) -> jax.Array:
         k = robot.q_index[i]
         value = q[k] if k >= 0 else robot.q_held[i]
         M = _joint_motion(robot.joint_type[i], robot.axis[i].astype(dtype), value.astype(dtype))
-        T_world.append(T_world[robot.parent[i]] @ robot.T_parent_joint[i].astype(dtype) @ M)
+        T_world.append(_matmul(_matmul(T_world[robot.parent[i]], robot.T_parent_joint[i].astype(dtype)), M))
     return jnp.stack(T_world)
 
 

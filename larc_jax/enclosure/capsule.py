@@ -63,8 +63,10 @@ def capsule_segments(robot: Robot, capsules: CapsuleModel, q: jax.Array):
     T_world_link = forward_kinematics(robot, q)
     T = T_world_link[jnp.asarray(capsules.link_index)]  # (C, 4, 4)
     R, t = T[:, :3, :3], T[:, :3, 3]
-    a = jnp.einsum("cij,cj->ci", R, capsules.p_link_a.astype(R.dtype)) + t
-    b = jnp.einsum("cij,cj->ci", R, capsules.p_link_b.astype(R.dtype)) + t
+    # Full precision: float32 products on GPUs default to TF32 (see larc_jax.interval, G1).
+    full = jax.lax.Precision.HIGHEST
+    a = jnp.einsum("cij,cj->ci", R, capsules.p_link_a.astype(R.dtype), precision=full) + t
+    b = jnp.einsum("cij,cj->ci", R, capsules.p_link_b.astype(R.dtype), precision=full) + t
     return a, b
 
 
