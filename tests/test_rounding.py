@@ -342,3 +342,54 @@ def test_passed_leaves_keep_the_margin_exactly(robot, capsules, case):
         ends = [min_clearance(robot, capsules, scene, [float(x) for x in hermite_exact(traj.t, traj.q, traj.qd, t)])
                 for t in (leaf.t0, leaf.t1)]
         assert min(ends) > MARGIN, (case, leaf)
+
+
+# ----------------------------------------------------------------------------------------------
+# One scene must not change another's result (the guard depends only on what a test touches)
+# ----------------------------------------------------------------------------------------------
+
+
+def _leaf_tuples(result):
+    return [[(x.depth, x.index, x.t0, x.t1, x.clearance_m, x.guard_m, x.certified, x.capsule, x.box)
+             for x in r.leaves] for r in result]
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_far_box_in_another_scene_changes_nothing(robot, capsules, dtype):
+    """A scene with a box 1e4 m away (and a 1e5 m floor slab) certified in the same call must
+    leave every other trajectory's certificate bit for bit unchanged; main computed one guard
+    from the largest coordinate of all scenes (float32: 4.9 m, nothing certified)."""
+    from .test_certify import random_scene, random_trajectory
+
+    rng = np.random.default_rng(77)
+    trajs = [random_trajectory(rng, robot, k) for k in range(40)]
+    scenes = [random_scene(rng, k) for k in range(40)]
+    far = Scene(lo=np.array([[1e4, 1e4, 0.0], [-1e5, -1e5, -1.0]]), hi=np.array([[1e4 + 1, 1e4 + 1, 1.0], [1e5, 1e5, -0.3]]),
+                box_names=("far", "slab"))
+    kw = dict(margin=MARGIN, max_depth=4)
+    alone = certify(trajs, scenes, robot, capsules, dtype=dtype, **kw)
+    both = certify(trajs + trajs[:1], scenes + [far], robot, capsules, dtype=dtype, **kw)
+    assert _leaf_tuples(alone) == _leaf_tuples(both)[:40]
+    n64 = sum(r.certified for r in certify(trajs, scenes, robot, capsules, **kw)) if dtype == np.float32 else None
+    if n64 is not None:
+        assert sum(r.certified for r in alone) >= n64 - 2  # float32 geometry certifies (nearly) as much
+    assert both[40].certified  # the far scene itself: the slab is 0.3 m below the base
+
+
+def test_far_box_in_the_same_scene_affects_only_its_own_pairs(robot, capsules):
+    from .test_certify import random_trajectory
+
+    rng = np.random.default_rng(78)
+    trajs = [random_trajectory(rng, robot, k) for k in range(6)]
+    near = Scene(lo=np.array([[0.3, -0.2, 0.0]]), hi=np.array([[0.5, 0.2, 0.3]]), box_names=("near",))
+    with_far = Scene(lo=np.array([[0.3, -0.2, 0.0], [1e4, 0.0, 0.0]]), hi=np.array([[0.5, 0.2, 0.3], [1e4 + 1, 1.0, 1.0]]),
+                     box_names=("near", "far"))
+    for method, dtype in (("reference", np.float64), ("larc", np.float32)):
+        a = certify(trajs, near, robot, capsules, method=method, dtype=dtype, margin=MARGIN, max_depth=3)
+        b = certify(trajs, with_far, robot, capsules, method=method, dtype=dtype, margin=MARGIN, max_depth=3)
+        assert [r.guard_m for r in a] == [r.guard_m for r in b]
+        for ra, rb in zip(_leaf_tuples(a), _leaf_tuples(b)):
+            # Same leaves, decisions, pairs and guards; the clearances may differ in the last bit
+            # (XLA compiles another shape), far below the guard.
+            assert [x[:4] + x[5:] for x in ra] == [x[:4] + x[5:] for x in rb]
+            assert all(abs(x[4] - y[4]) <= max(1e-15, 1e-6 * x[5]) for x, y in zip(ra, rb))
