@@ -201,6 +201,21 @@ def _cmd_fit_capsules(args) -> int:
     return EXIT_OK
 
 
+def _cmd_verify_capsules(args) -> int:
+    from .enclosure import verify_containment
+    from .enclosure.robot_file import default_capsule_path, load_robot_file
+
+    source = str(args.robot or default_capsule_path())
+    robot, capsules = load_robot_file(args.robot)  # checks the URDF and geometry hashes, coverage
+    with _progress_bar(args, desc="verifying containment", unit=" links") as bar:
+        checked = verify_containment(robot, capsules, source=source, progress=lambda link: bar.update(1))
+    if not args.quiet:
+        print(f"{source}: containment proven for {sum(checked.values())} collision elements of "
+              f"{len(checked)} links in {capsules.n_capsules} capsules (padding {capsules.padding_m * 1000:g} mm); "
+              f"URDF and collision geometry match the fit")
+    return EXIT_OK
+
+
 def _certify_with_progress(args, trajectories, scene, robot, capsules):
     from .certify import certify
 
@@ -415,6 +430,16 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--no-urdf-field", action="store_true",
                    help="do not record the URDF path in the file (e.g. for PIPER, found via env)")
     f.set_defaults(func=_cmd_fit_capsules)
+
+    v = sub.add_parser(
+        "verify-capsules", parents=common, help="re-prove that a capsule file contains its robot's collision geometry",
+        description="Load a robot (capsule) file, check that its URDF and every collision mesh are the ones it was "
+                    "fitted to, and prove again that every collision element lies inside a capsule of its link. "
+                    "Exit status: 0 proven, 2 bad input or not contained (the link and element are named), "
+                    "3 internal error.")
+    v.add_argument("robot", nargs="?", metavar="ROBOT.yaml",
+                   help="robot file from `larc fit-capsules` (default: PIPER's configs/piper_capsules.yaml)")
+    v.set_defaults(func=_cmd_verify_capsules)
 
     c = sub.add_parser("certify", help="certify trajectories against a scene", parents=common,
                        description="Exit status: 0 all certified (or --no-fail-on-uncertified), "

@@ -12,12 +12,14 @@ micrometre from the endpoints the file will hold, so the file itself is what is 
 Fitting (:func:`fit_capsules`): a minimum-volume capsule around the convex hull of each link's
 vertices (Nelder-Mead from the three principal directions); optionally two capsules per link,
 its elements split whole (never clipped) along the principal axis at the cut that minimises the
-total volume.
+total volume. A link whose geometry cannot be split into two non-empty parts (a single
+primitive, a single triangle, elements with one centroid) keeps one capsule.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from typing import Mapping, Sequence
 
@@ -28,9 +30,22 @@ from ..robot import Robot
 from .capsule import CapsuleModel
 from .meshes import link_elements
 
-__all__ = ["FittedCapsule", "fit_capsules", "verify_containment", "point_segment_distance"]
+__all__ = ["FittedCapsule", "fit_capsules", "verify_containment", "point_segment_distance", "inside_capsule"]
+
+log = logging.getLogger(__name__)
+
+_SPLIT_FRACTIONS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
 
 _ROUND = 1e-6  # radii are rounded *up* to the micrometre (endpoints are stored to it).
+_DIST_SLACK = 32 * float(np.finfo(np.float64).eps)
+"""Float64 rounding of :func:`point_segment_distance`, per metre of |p| + |a| + |b| (a handful
+of operations, each off by at most u): containment is claimed only with this much to spare."""
+
+
+def inside_capsule(points: np.ndarray, a: np.ndarray, b: np.ndarray, core: float) -> np.ndarray:
+    """Which points (..., 3) are within ``core`` of segment [a, b], float64 rounding included."""
+    scale = np.linalg.norm(points, axis=-1) + np.linalg.norm(a) + np.linalg.norm(b)
+    return point_segment_distance(points, a, b) + _DIST_SLACK * scale <= core
 
 
 def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -89,6 +104,21 @@ def _fit_one(points: np.ndarray, maxiter: int = 3000) -> tuple[np.ndarray, np.nd
     return best.x[:3], best.x[3:], volume(best.x)
 
 
+def _best_split(elements: np.ndarray) -> float | None:
+    """The cut fraction giving the smallest total volume of two capsules, or None when no cut
+    leaves both parts non-empty (a single primitive, elements sharing one centroid)."""
+    best = None
+    for frac in _SPLIT_FRACTIONS:
+        m1, m2 = _split_parts(elements, frac)
+        if not (m1.any() and m2.any()):
+            continue
+        f1 = _fit_one(_hull_points(elements[m1]), maxiter=600)
+        f2 = _fit_one(_hull_points(elements[m2]), maxiter=600)
+        if best is None or f1[2] + f2[2] < best[0]:
+            best = (f1[2] + f2[2], frac)
+    return None if best is None else best[1]
+
+
 def _split_parts(elements: np.ndarray, cut_fraction: float) -> tuple[np.ndarray, np.ndarray]:
     """Split elements (whole, never clipped) by their centroid along the principal axis."""
     c = elements.mean(axis=1)
@@ -119,7 +149,7 @@ def _finalise(name, link, elems, a, b, padding) -> FittedCapsule:
     b = np.array([round(float(x), 6) for x in b])
     core = float(point_segment_distance(elems.reshape(-1, 3), a, b).max())
     radius = round(math.ceil((core + padding) / _ROUND) * _ROUND, 6)
-    while radius - padding < core:  # the decimal the file holds must not undercut the proof
+    while not inside_capsule(elems.reshape(-1, 3), a, b, radius - padding).all():  # the file must not undercut the proof
         radius = round(radius + _ROUND, 6)
     return FittedCapsule(
         name, link, a, b, radius,
@@ -156,36 +186,37 @@ def fit_capsules(
             elements[link] = e
     if not elements:
         raise LarcInputError(f"{robot.urdf_path}: no link has collision geometry")
+    unknown = [k for k in per_link if k not in elements]
+    if unknown:
+        raise LarcInputError(f"capsules_per_link: link '{unknown[0]}' is not a link with collision geometry "
+                             f"(links: {', '.join(elements)})")
 
     single, double = {}, {}
     for link, e in elements.items():
         if progress:
             progress(f"fitting {link}")
-        hull = _hull_points(e)
-        single[link] = _fit_one(hull)
+        single[link] = _fit_one(_hull_points(e))
         if per_link.get(link, 2 if n_capsules else 1) == 2:
-            best = None
-            for frac in (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8):
-                m1, m2 = _split_parts(e, frac)
-                f1 = _fit_one(_hull_points(e[m1]), maxiter=600)
-                f2 = _fit_one(_hull_points(e[m2]), maxiter=600)
-                if best is None or f1[2] + f2[2] < best[0]:
-                    best = (f1[2] + f2[2], frac)
-            m1, m2 = _split_parts(e, best[1])
+            best = _best_split(e)
+            if best is None:
+                if per_link.get(link) == 2:
+                    log.warning("link '%s' has %d collision element%s that cannot be split in two: it keeps one "
+                                "capsule", link, len(e), "" if len(e) == 1 else "s")
+                continue
+            m1, m2 = _split_parts(e, best)
             double[link] = (m1, m2, _fit_one(_hull_points(e[m1])), _fit_one(_hull_points(e[m2])))
 
-    split = {l for l, v in per_link.items() if v == 2}
+    split = {l for l, v in per_link.items() if v == 2 and l in double}
     if n_capsules is not None:
+        free = [l for l in double if l not in split and per_link.get(l) != 1]
         budget = n_capsules - len(elements) - len(split)
-        if budget < 0 or budget > len(elements) - len(split):
+        if budget < 0 or budget > len(free):
+            fixed = sorted(set(elements) - set(double))
             raise LarcInputError(
-                f"cannot fit {n_capsules} capsules to {len(elements)} links with collision geometry"
-            )
-        gains = sorted(
-            ((single[l][2] - double[l][2][2] - double[l][3][2], l) for l in double
-             if l not in split and per_link.get(l) != 1),
-            reverse=True,
-        )
+                f"cannot fit {n_capsules} capsules to {len(elements)} links with collision geometry: between "
+                f"{len(elements) + len(split)} and {len(elements) + len(split) + len(free)}"
+                + (f" (cannot be split: {', '.join(fixed)})" if fixed else ""))
+        gains = sorted(((single[l][2] - double[l][2][2] - double[l][3][2], l) for l in free), reverse=True)
         split |= {l for _, l in gains[:budget]}
 
     out = []
@@ -205,14 +236,19 @@ def fit_capsules(
 # ----------------------------------------------------------------------------------------------
 
 
-def verify_containment(robot: Robot, capsules: CapsuleModel, *, source: str = "capsule file") -> dict:
+def verify_containment(robot: Robot, capsules: CapsuleModel, *, source: str = "capsule file",
+                       progress=None) -> dict:
     """Prove that every collision element of every link lies inside one of its link's capsules
-    shrunk by the padding. Raises :class:`LarcInputError` naming the link and element otherwise.
+    shrunk by the padding (float64 rounding of the distances included). Raises
+    :class:`LarcInputError` naming the link and element otherwise; ``progress(link)`` is called
+    before each link.
 
     Returns ``{link: number of elements checked}``.
     """
     checked = {}
     for link in dict.fromkeys(capsules.link_names):
+        if progress:
+            progress(link)
         elems = link_elements(robot, link)
         idx = [c for c, l in enumerate(capsules.link_names) if l == link]
         inside = np.zeros(len(elems), bool)
@@ -220,7 +256,7 @@ def verify_containment(robot: Robot, capsules: CapsuleModel, *, source: str = "c
             a = np.asarray(capsules.p_link_a[c], np.float64)
             b = np.asarray(capsules.p_link_b[c], np.float64)
             core = float(capsules.radius[c]) - capsules.padding_m
-            inside |= (point_segment_distance(elems, a, b) <= core).all(axis=1)
+            inside |= inside_capsule(elems, a, b, core).all(axis=1)
         if not inside.all():
             bad = int(np.flatnonzero(~inside)[0])
             raise LarcInputError(

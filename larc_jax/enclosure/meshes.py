@@ -31,9 +31,9 @@ import numpy as np
 
 from ..errors import LarcInputError
 from ..robot import JointType, Robot
-from ..urdf import load_urdf_model, resolve_uri
+from ..urdf import file_sha256, load_urdf_model, resolve_uri
 
-__all__ = ["link_elements", "robot_urdf_model", "joint_limits", "collision_files"]
+__all__ = ["link_elements", "robot_urdf_model", "joint_limits", "collision_geometry", "links_with_geometry"]
 
 
 def _circumscribed_sphere_vertices(radius: float) -> np.ndarray:
@@ -102,6 +102,31 @@ def _mesh_cached(stamp: tuple, link: str) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
+def _collisions(robot: Robot, link: str):
+    """``(origin 4x4, geometry, mesh path or None)`` of each ``<collision>`` of ``link``; mesh
+    paths are resolved and must exist, other geometry must be a box, sphere or cylinder."""
+    model = robot_urdf_model(robot)
+    dirs = dict(robot.package_dirs)
+    out = []
+    for col in model.link_map[link].collisions:
+        origin = np.asarray(col.origin if col.origin is not None else np.eye(4), float)
+        geom = col.geometry
+        if geom is None:
+            raise LarcInputError(f"{robot.urdf_path}: link '{link}' has a <collision> without geometry")
+        path = None
+        if geom.mesh is not None:
+            path = resolve_uri(geom.mesh.filename, Path(robot.urdf_path), dirs)
+            if not path.is_file():
+                raise LarcInputError(
+                    f"{robot.urdf_path}: link '{link}' collision mesh '{geom.mesh.filename}' "
+                    f"resolves to {path}, which does not exist"
+                )
+        elif geom.box is None and geom.sphere is None and geom.cylinder is None:
+            raise LarcInputError(f"{robot.urdf_path}: link '{link}' has an unsupported collision geometry")
+        out.append((origin, geom, path))
+    return out
+
+
 def link_elements(robot: Robot, link: str) -> np.ndarray:
     """Collision elements of ``link`` in its own frame: (E, P, 3) vertex sets, float64.
 
@@ -110,30 +135,15 @@ def link_elements(robot: Robot, link: str) -> np.ndarray:
     ends (see module docstring), so P is tripled.
     """
     model = robot_urdf_model(robot)
-    dirs = dict(robot.package_dirs)
     i = robot.link_index(link)
-    ulink = model.link_map[link]
     groups: list[np.ndarray] = []
-    for col in ulink.collisions:
-        origin = np.asarray(col.origin if col.origin is not None else np.eye(4), float)
-        geom = col.geometry
-        if geom is None:
-            raise LarcInputError(f"{robot.urdf_path}: link '{link}' has a <collision> without geometry")
-        if geom.mesh is not None:
-            path = resolve_uri(geom.mesh.filename, Path(robot.urdf_path), dirs)
-            if not path.is_file():
-                raise LarcInputError(
-                    f"{robot.urdf_path}: link '{link}' collision mesh '{geom.mesh.filename}' "
-                    f"resolves to {path}, which does not exist"
-                )
+    for origin, geom, path in _collisions(robot, link):
+        if path is not None:
             v, faces = _mesh_cached(_file_stamp(path), link)
             scale = np.asarray(geom.mesh.scale if geom.mesh.scale is not None else 1.0, float)
             elems = (v * scale)[faces]  # (F, 3, 3)
         else:
-            v = _primitive_vertices(geom)
-            if v is None:
-                raise LarcInputError(f"{robot.urdf_path}: link '{link}' has an unsupported collision geometry")
-            elems = v[None]
+            elems = _primitive_vertices(geom)[None]
         elems = elems @ origin[:3, :3].T + origin[:3, 3]
         if groups and groups[0].shape[1] != elems.shape[1]:
             # Mixed element sizes: pad by repeating the first vertex (same hull, same test).
@@ -152,6 +162,38 @@ def link_elements(robot: Robot, link: str) -> np.ndarray:
             [elems, elems + (lo - held) * ax, elems + (hi - held) * ax], axis=1
         )
     return elems
+
+
+def links_with_geometry(robot: Robot) -> list[str]:
+    """Links that have at least one ``<collision>`` element (from the parsed URDF; no mesh is read)."""
+    model = robot_urdf_model(robot)
+    return [link for link in robot.link_names if model.link_map[link].collisions]
+
+
+def collision_geometry(robot: Robot) -> dict[str, list[dict]]:
+    """What the capsules of each link are fitted to, as the robot file records it: per link with
+    collision geometry, one entry per ``<collision>`` element with its placement in the link
+    frame (``origin``: the top three rows of the 4x4 transform) and either the mesh URI, the
+    SHA-256 of the file it resolves to and the URDF ``scale``, or the primitive's parameters
+    (``box: [sx, sy, sz]``, ``sphere: r``, ``cylinder: [r, length]``). Mesh files are hashed
+    afresh on every call (never cached: a replaced file must be seen)."""
+    out: dict[str, list[dict]] = {}
+    for link in links_with_geometry(robot):
+        entries = []
+        for origin, geom, path in _collisions(robot, link):
+            if path is not None:
+                scale = np.broadcast_to(np.asarray(geom.mesh.scale if geom.mesh.scale is not None else 1.0, float), 3)
+                entry = {"mesh": geom.mesh.filename, "sha256": file_sha256(path), "scale": [float(x) for x in scale]}
+            elif geom.box is not None:
+                entry = {"box": [float(x) for x in geom.box.size]}
+            elif geom.sphere is not None:
+                entry = {"sphere": float(geom.sphere.radius)}
+            else:
+                entry = {"cylinder": [float(geom.cylinder.radius), float(geom.cylinder.length)]}
+            entry["origin"] = [[float(x) for x in row] for row in origin[:3]]
+            entries.append(entry)
+        out[link] = entries
+    return out
 
 
 def joint_limits(model, joint: str) -> tuple[float, float]:

@@ -4,6 +4,17 @@ Written by ``larc fit-capsules`` (:func:`save_capsules`), read by :func:`load_ca
 capsules for a given robot) and :func:`load_robot_file` (the robot *and* its capsules, from the
 file's ``urdf``, ``package_dirs``, ``active_joints`` and ``held_joints`` fields: what
 ``larc certify --robot FILE`` uses). Relative paths in the file are relative to its folder.
+
+A capsule file is trusted only while the geometry its containment was proven on is unchanged.
+It records the SHA-256 of the URDF text (``urdf_sha256``: joint origins, limits, collision
+origins, scales and primitive sizes) and, in ``geometry``, every collision element of every
+link as the fit used it (:func:`~larc_jax.enclosure.meshes.collision_geometry`: the SHA-256 of
+each collision mesh file, its scale, the primitive parameters, the placement). Loading checks
+all of it and refuses a mismatch ("refit with larc fit-capsules"), a file without ``geometry``
+(written before revision ``larc-capsules-2``), and a file that leaves a link with collision
+geometry without a capsule. Containment itself is re-proven on demand by ``larc
+verify-capsules`` (:func:`~larc_jax.enclosure.fit.verify_containment`), and by ``fit-capsules``
+after writing.
 """
 
 from __future__ import annotations
@@ -19,11 +30,13 @@ from ..io import atomic_write_text, parse_number, parse_vector, parse_yaml, read
 from ..robot import JointType, Robot
 from .capsule import CapsuleModel
 from .fit import FittedCapsule
+from .meshes import collision_geometry, links_with_geometry
 from .motion import motion_constants
 
 __all__ = ["save_capsules", "load_capsules", "load_robot_file", "default_capsule_path", "MODEL_REVISION"]
 
-MODEL_REVISION = "larc-capsules-1"
+MODEL_REVISION = "larc-capsules-2"
+"""Revision 2 added ``geometry`` (collision-geometry hashes); files without it are refused."""
 
 
 def default_capsule_path() -> Path:
@@ -53,6 +66,7 @@ def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[FittedCapsule
         "active_joints": list(robot.active_joint_names),
         "held_joints": held,
         "held_prismatic_stroke_enclosed": True,
+        "geometry": collision_geometry(robot),
         "capsules": [
             {
                 "name": f.name,
@@ -71,7 +85,8 @@ def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[FittedCapsule
         doc = {"urdf": urdf, **extra, **doc}
     header = (
         "# Capsules fitted by `larc fit-capsules`; containment of every collision-mesh vertex is\n"
-        "# proven at load time by the tests. Link frames, metres; radius includes padding_m.\n"
+        "# proven by `larc verify-capsules`. Link frames, metres; radius includes padding_m.\n"
+        "# `geometry` records what the fit used; a changed mesh or URDF is refused at load.\n"
     )
     atomic_write_text(path, header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))
 
@@ -93,22 +108,72 @@ def _vec3(value, source: str, where: str) -> np.ndarray:
     return v
 
 
-def load_capsules(path: str | Path, robot: Robot, *, check_hash: bool = True) -> CapsuleModel:
+def _refit(robot: Robot, source: str) -> str:
+    return f"refit with `larc fit-capsules {robot.urdf_path} -o {source}`"
+
+
+def _check_geometry(doc: Mapping, robot: Robot, source: str) -> None:
+    """The recorded collision geometry must be what the robot's URDF and files give now."""
+    if "geometry" not in doc:
+        raise LarcInputError(
+            f"{source}: no 'geometry' field (collision-geometry hashes; the file is revision "
+            f"{short_repr(doc.get('revision'))}, older than {MODEL_REVISION}), so the meshes its capsules "
+            f"were proven on cannot be checked; {_refit(robot, source)}")
+    recorded = doc["geometry"]
+    if not isinstance(recorded, dict):
+        raise LarcInputError(f"{source}: geometry must be a mapping LINK: [collision elements]")
+    current = collision_geometry(robot)
+    for link in sorted(set(recorded) | set(current), key=str):
+        have, want = current.get(link), recorded.get(link)
+        if want is None:
+            raise LarcInputError(f"{source}: link '{link}' has collision geometry in {robot.urdf_path} that the "
+                                 f"capsules were not fitted to; {_refit(robot, source)}")
+        if have is None:
+            raise LarcInputError(f"{source}: geometry records link '{link}', which has no collision geometry in "
+                                 f"{robot.urdf_path}; {_refit(robot, source)}")
+        if not isinstance(want, list) or len(want) != len(have):
+            raise LarcInputError(
+                f"{source}: geometry.{link} records {len(want) if isinstance(want, list) else short_repr(want)} "
+                f"collision elements, {robot.urdf_path} has {len(have)}; {_refit(robot, source)}")
+        for k, (w, h) in enumerate(zip(want, have)):
+            if w == h:
+                continue
+            if isinstance(w, dict) and "sha256" in w and "mesh" in h and w.get("sha256") != h["sha256"]:
+                raise LarcInputError(
+                    f"{source}: link '{link}' collision mesh {h['mesh']} has changed since the capsules were "
+                    f"fitted (sha256 {h['sha256']}, fitted to {short_repr(w.get('sha256'))}); {_refit(robot, source)}")
+            raise LarcInputError(
+                f"{source}: geometry.{link}[{k}] = {short_repr(w)} differs from what {robot.urdf_path} gives "
+                f"now ({short_repr(h)}); {_refit(robot, source)}")
+
+
+def _check_coverage(links: list[str], robot: Robot, source: str) -> None:
+    """Every link with collision geometry has a capsule (cheap: no mesh is read)."""
+    missing = [link for link in links_with_geometry(robot) if link not in links]
+    if missing:
+        raise LarcInputError(
+            f"{source}: link{'s' if len(missing) > 1 else ''} {', '.join(repr(m) for m in missing)} "
+            f"{'have' if len(missing) > 1 else 'has'} collision geometry but no capsule; {_refit(robot, source)}")
+
+
+def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
     """Read a capsule file for ``robot`` and compute its motion constants.
 
-    Fails with :class:`LarcInputError` if the file was fitted to another URDF (hash mismatch),
-    names unknown links, or holds malformed numbers.
+    Fails with :class:`LarcInputError` if the file was fitted to another URDF or to other
+    collision geometry (hash mismatch), leaves a link with collision geometry uncovered, names
+    unknown links, or holds malformed numbers.
     """
     path = Path(path)
     source = str(path)
     doc = parse_yaml(read_input_text(path, "capsule file"), source)
     if not isinstance(doc, dict):
         raise LarcInputError(f"{source}: expected a mapping with 'capsules'")
-    if check_hash and _field(doc, "urdf_sha256", source) != robot.urdf_sha256:
+    if _field(doc, "urdf_sha256", source) != robot.urdf_sha256:
         raise LarcInputError(
             f"{source}: fitted to a URDF with sha256 {short_repr(doc['urdf_sha256'])}, but {robot.urdf_path} "
-            f"has sha256 {robot.urdf_sha256}; refit with `larc fit-capsules {robot.urdf_path} -o {source}`"
+            f"has sha256 {robot.urdf_sha256}; {_refit(robot, source)}"
         )
+    _check_geometry(doc, robot, source)
     padding = parse_number(_field(doc, "padding_m", source), source, "padding_m")
     if not (np.isfinite(padding) and padding >= 0):
         raise LarcInputError(f"{source}: padding_m must be a finite number >= 0")
@@ -165,6 +230,7 @@ def load_capsules(path: str | Path, robot: Robot, *, check_hash: bool = True) ->
         A.append(_vec3(_field(e, "a", source, where + "."), source, where + ".a"))
         B.append(_vec3(_field(e, "b", source, where + "."), source, where + ".b"))
         R.append(float(r))
+    _check_coverage(links, robot, source)
     A, B, R = np.array(A), np.array(B), np.array(R)
     return CapsuleModel(
         p_link_a=A,
@@ -192,7 +258,8 @@ def load_robot_file(path: str | Path | None = None) -> tuple[Robot, CapsuleModel
     if doc is None:
         raise LarcInputError(f"{path}: robot file is empty")
     if not isinstance(doc, dict) or "urdf" not in doc:
-        raise LarcInputError(f"{path}: missing field 'urdf' (write it with `larc fit-capsules URDF -o FILE`)")
+        raise LarcInputError(f"{path}: missing field 'urdf' (write it with `larc fit-capsules URDF -o FILE`; "
+                             f"PIPER's shipped capsule file is used when no robot file is given)")
     if not isinstance(doc["urdf"], str) or not doc["urdf"]:
         raise LarcInputError(f"{path}: urdf must be a file path, got {short_repr(doc['urdf'])}")
     urdf = Path(doc["urdf"])

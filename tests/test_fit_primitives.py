@@ -1,0 +1,89 @@
+"""`larc fit-capsules` on links made of primitives: a part that cannot be split keeps one capsule
+(main crashed with AttributeError in _fit_one for --n-capsules and --capsules-per-link LINK=2)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+
+from larc_jax import LarcInputError
+from larc_jax.cli import main as larc_main
+from larc_jax.enclosure import fit_capsules, load_robot_file, verify_containment
+from larc_jax.urdf import load_robot
+
+URDF = """<?xml version="1.0"?>
+<robot name="primitives">
+  <link name="base"><collision><geometry><box size="0.3 0.3 0.05"/></geometry></collision></link>
+  <link name="post">
+    <collision><origin xyz="0 0 0.15"/><geometry><cylinder radius="0.04" length="0.3"/></geometry></collision>
+  </link>
+  <link name="block"><collision><geometry><box size="0.1 0.06 0.2"/></geometry></collision></link>
+  <link name="arm">
+    <collision><origin xyz="0.1 0 0"/><geometry><box size="0.2 0.05 0.05"/></geometry></collision>
+    <collision><origin xyz="0.3 0 0" rpy="0 1.5708 0"/><geometry><cylinder radius="0.03" length="0.2"/></geometry></collision>
+  </link>
+  <link name="tip"><collision><geometry><sphere radius="0.03"/></geometry></collision></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="post"/><origin xyz="0 0 0.025"/>
+    <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="post"/><child link="block"/><origin xyz="0 0 0.3"/>
+    <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="j3" type="revolute"><parent link="block"/><child link="arm"/><origin xyz="0 0 0.1"/>
+    <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="j4" type="revolute"><parent link="arm"/><child link="tip"/><origin xyz="0.4 0 0"/>
+    <axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+</robot>
+"""
+
+
+def write_primitive_urdf(folder: Path) -> Path:
+    """A 4-joint arm made of primitives only (no mesh files): one box, cylinder or sphere per
+    link, and one link ('arm') of two primitives, the only one that can be split."""
+    path = folder / "primitives.urdf"
+    path.write_text(URDF)
+    return path
+
+
+def test_n_capsules_splits_only_what_can_be_split(tmp_path):
+    robot = load_robot(write_primitive_urdf(tmp_path))
+    fitted = fit_capsules(robot, n_capsules=6)
+    assert sorted(f.name for f in fitted) == ["arm_a", "arm_b", "base", "block", "post", "tip"]
+    with pytest.raises(LarcInputError, match=r"cannot fit 7 capsules .* between 5 and 6 .*cannot be split: base, "
+                                             r"block, post, tip"):
+        fit_capsules(robot, n_capsules=7)
+    with pytest.raises(LarcInputError, match="cannot fit 4 capsules"):
+        fit_capsules(robot, n_capsules=4)
+
+
+def test_forced_split_of_one_primitive_keeps_one_capsule(tmp_path, caplog):
+    robot = load_robot(write_primitive_urdf(tmp_path))
+    with caplog.at_level(logging.WARNING, logger="larc_jax"):
+        fitted = fit_capsules(robot, capsules_per_link={"post": 2, "tip": 2, "arm": 2})
+    assert sorted(f.name for f in fitted) == ["arm_a", "arm_b", "base", "block", "post", "tip"]
+    assert "link 'post' has 1 collision element that cannot be split in two: it keeps one capsule" in caplog.text
+    with pytest.raises(LarcInputError, match="capsules_per_link: link 'nowhere' is not a link with collision"):
+        fit_capsules(robot, capsules_per_link={"nowhere": 2})
+
+
+@pytest.mark.parametrize("args", [["--n-capsules", "6"], ["--capsules-per-link", "post=2"],
+                                  ["--n-capsules", "5", "--capsules-per-link", "block=2"]])
+def test_fit_capsules_command_on_primitives(tmp_path, capsys, args):
+    urdf = write_primitive_urdf(tmp_path)
+    out = tmp_path / "robot.yaml"
+    rc = larc_main(["fit-capsules", str(urdf), "-o", str(out), *args])
+    _, err = capsys.readouterr()
+    assert rc == 0, err
+    robot, capsules = load_robot_file(out)
+    assert verify_containment(robot, capsules) and set(capsules.link_names) == {"base", "post", "block", "arm", "tip"}
+    assert larc_main(["-q", "verify-capsules", str(out)]) == 0
+
+
+def test_fit_capsules_command_bad_requests(tmp_path, capsys):
+    urdf = write_primitive_urdf(tmp_path)
+    out = tmp_path / "robot.yaml"
+    assert larc_main(["fit-capsules", str(urdf), "-o", str(out), "--n-capsules", "9"]) == 2
+    assert "cannot fit 9 capsules" in capsys.readouterr().err
+    assert larc_main(["fit-capsules", str(urdf), "-o", str(out), "--capsules-per-link", "link6=2"]) == 2
+    assert "link 'link6' is not a link with collision geometry" in capsys.readouterr().err
+    assert not out.exists()
