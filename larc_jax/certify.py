@@ -28,6 +28,7 @@ from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
                        check_margin)
 from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
+from .io import short_repr
 from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
@@ -141,24 +142,50 @@ def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max
     return frontier, LeafTable.concatenate([_leaf_table(names, *cols)])
 
 
-def _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth):
+def _items(value, kind, what: str) -> list:
+    """A single ``kind`` or a list/tuple of them, as a list; LarcInputError naming the entry."""
+    if isinstance(value, kind):
+        return [value]
+    if not isinstance(value, (list, tuple)):
+        raise LarcInputError(f"certify: {what} must be a {kind.__name__} or a list of them, got {type(value).__name__}")
+    for i, item in enumerate(value):
+        if not isinstance(item, kind):
+            raise LarcInputError(f"certify: {what}[{i}] is a {type(item).__name__}, not a {kind.__name__}")
+    return list(value)
+
+
+def _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress):
+    """Everything ``certify`` is given, checked as the command line checks it (LarcInputError)."""
+    trajectories = _items(trajectories, Trajectory, "trajectories")
     if not trajectories:
         raise LarcInputError("certify: no trajectories given")
     if isinstance(scenes, Scene):
         scenes = [scenes] * len(trajectories)
-    scenes = list(scenes)
+    scenes = _items(scenes, Scene, "scenes")
     if len(scenes) != len(trajectories):
         raise LarcInputError(f"certify: {len(trajectories)} trajectories but {len(scenes)} scenes")
-    check_margin(margin, "certify: margin")
-    check_depth(max_depth, "certify: max_depth")
-    check_depth(coarse_depth, "certify: coarse_depth")
+    if not isinstance(robot, Robot):
+        raise LarcInputError(f"certify: robot must be a Robot (larc_jax.load_robot), got {type(robot).__name__}")
+    if not isinstance(capsules, CapsuleModel):
+        raise LarcInputError(f"certify: capsules must be a CapsuleModel (larc_jax.load_capsules), got "
+                             f"{type(capsules).__name__}")
+    if (np.shape(capsules.motion_a) != (capsules.n_capsules, robot.n_joints)
+            or any(not 0 <= i < robot.n_links or robot.link_names[i] != name
+                   for i, name in zip(capsules.link_index, capsules.link_names))):
+        raise LarcInputError("certify: the capsule model was built for another robot (load_capsules(path, robot))")
+    margin = check_margin(margin, "certify: margin")
+    max_depth = check_depth(max_depth, "certify: max_depth")
+    coarse_depth = check_depth(coarse_depth, "certify: coarse_depth")
+    dtype = geometry_dtype(dtype)
+    if progress is not None and not callable(progress):
+        raise LarcInputError(f"certify: progress must be a function of the interval count, got {short_repr(progress)}")
     trajectories = [validate_trajectory(t, robot) for t in trajectories]
+    root = robot.link_names[0]
     for s in scenes:
-        if not (np.isfinite(s.lo).all() and np.isfinite(s.hi).all()) or (s.lo > s.hi).any():
-            raise LarcInputError(f"{s.source or s.name or '<scene>'}: boxes must be finite with min <= max")
-    if capsules.motion_a.shape[1] != robot.n_joints:
-        raise LarcInputError("certify: capsule model was built for another robot (joint count differs)")
-    return trajectories, scenes
+        if s.frame and s.frame != root:
+            raise LarcInputError(f"{s.source or s.name or 'Scene'}: frame '{s.frame}' is not the robot base frame "
+                                 f"'{root}'")
+    return trajectories, scenes, margin, max_depth, coarse_depth, dtype
 
 
 def certify(
@@ -193,13 +220,12 @@ def certify(
     Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory.
     JAX computations run with 64-bit types enabled only inside this call (scoped, not global).
     """
-    if isinstance(trajectories, Trajectory):
-        trajectories = [trajectories]
     try:
         method = Method(method)
-    except ValueError:
-        raise LarcInputError(f"certify: unknown method {method!r} ({', '.join(METHODS)})") from None
-    trajectories, scenes = _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth)
+    except (ValueError, TypeError):
+        raise LarcInputError(f"certify: unknown method {short_repr(method)} ({', '.join(METHODS)})") from None
+    trajectories, scenes, margin, max_depth, coarse_depth, dtype = _check_inputs(
+        trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress)
     start = time.perf_counter()
     names = _Names(scenes)
     if method == Method.REFERENCE:

@@ -32,18 +32,21 @@ DEFAULT_PADDING_M = 0.001
 def check_margin(margin, what: str = "margin") -> float:
     """ρ as a float: a finite number > 0 (paper eq. 3); else :class:`LarcInputError` naming ``what``."""
     import math
+    import numbers
 
     from .errors import LarcInputError
 
-    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not (math.isfinite(margin) and margin > 0):
+    if isinstance(margin, bool) or not isinstance(margin, numbers.Real) or not (math.isfinite(margin) and margin > 0):
         raise LarcInputError(f"{what} {margin!r}: must be a finite number > 0 m (the clearance margin rho, paper eq. 3)")
     return float(margin)
 
 
 def check_depth(depth, what: str = "max_depth") -> int:
     """A bisection depth: an integer in 0..MAX_DEPTH_LIMIT; else :class:`LarcInputError`."""
+    import numbers
+
     from .errors import LarcInputError
 
-    if isinstance(depth, bool) or not isinstance(depth, int) or not 0 <= depth <= MAX_DEPTH_LIMIT:
+    if isinstance(depth, bool) or not isinstance(depth, numbers.Integral) or not 0 <= depth <= MAX_DEPTH_LIMIT:
         raise LarcInputError(f"{what} {depth!r}: must be an integer in 0..{MAX_DEPTH_LIMIT}")
-    return depth
+    return int(depth)

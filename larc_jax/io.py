@@ -3,7 +3,8 @@ reading of user files (text, YAML, JSON) that turns every way a file can be bad 
 :class:`~larc_jax.errors.LarcInputError` line naming the file.
 
 It also holds the parsers of numbers and vectors that every reader shares
-(:func:`parse_number`, :func:`parse_vector`). Trajectory and scene readers live in :mod:`larc_jax.trajectory` and :mod:`larc_jax.scene`.
+(:func:`parse_number`, :func:`parse_vector`) and the array check of the Python API's records
+(:func:`real_array`). Trajectory and scene readers live in :mod:`larc_jax.trajectory` and :mod:`larc_jax.scene`.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from .errors import LarcInputError
 __all__ = [
     "atomic_write_text", "atomic_write_bytes", "atomic_write_json",
     "read_input_text", "parse_yaml_documents", "parse_yaml", "parse_json", "short_repr",
-    "deferred_log", "parse_number", "parse_vector", "MAX_INPUT_BYTES",
+    "deferred_log", "parse_number", "parse_vector", "real_array", "MAX_INPUT_BYTES",
 ]
 
 MAX_INPUT_BYTES = 512 * 2**20
@@ -232,3 +233,31 @@ def parse_vector(value, n: int, source: str, where: str, *, finite: bool = False
             f"{source}: {where} has {len(value)} entries, expected {n}" + (f" ({entries})" if entries else ""))
     return np.array([parse_number(v, source, f"{where}[{i}]", finite=finite) for i, v in enumerate(value)],
                     dtype=np.float64).reshape(n)
+
+
+def real_array(value, where: str, ndim: int, last: int | None = None) -> np.ndarray:
+    """An array-like of real numbers (a NumPy or JAX array, nested lists) as a *read-only*
+    float64 copy with ``ndim`` dimensions (and ``last`` entries along the last one, if given);
+    :class:`LarcInputError` naming ``where`` otherwise. Used by the Python API's records
+    (``Trajectory``, ``Scene``) so that bad input never fails deep inside NumPy or JAX."""
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError) as exc:  # ragged nested lists, unconvertible objects
+        raise LarcInputError(f"{where} must be an array of numbers ({_one_line(exc)})") from None
+    if isinstance(value, (list, tuple)) and raw.dtype.kind in "iu" and any(
+            isinstance(x, (bool, np.bool_)) for x in np.asarray(value, dtype=object).reshape(-1)):
+        raise LarcInputError(f"{where} must be an array of real numbers, got a boolean in "
+                             f"{' '.join(short_repr(value).split())}")
+    if raw.dtype.kind not in "iuf" or (raw.dtype.kind == "f" and raw.dtype.itemsize > 8):
+        got = (f"an array of dtype {raw.dtype}" if hasattr(value, "dtype")
+               else f"{' '.join(short_repr(value).split())} (dtype {raw.dtype})")
+        raise LarcInputError(f"{where} must be an array of real numbers (float64 or narrower), got {got}")
+    if raw.ndim != ndim or (last is not None and raw.shape[-1] != last):
+        want = "(" + ", ".join(["N"] * (ndim - 1) + [str(last) if last is not None else "N"]) + ")"
+        raise LarcInputError(f"{where} must have shape {want}, got shape {raw.shape}")
+    with np.errstate(over="ignore"):
+        out = np.array(raw, dtype=np.float64)
+    if raw.dtype.kind in "iu" and not np.array_equal(out.astype(raw.dtype), raw):
+        raise LarcInputError(f"{where} holds integers that are not exactly representable as floats")
+    out.flags.writeable = False
+    return out

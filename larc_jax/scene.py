@@ -46,7 +46,7 @@ import numpy as np
 import yaml
 
 from .errors import LarcInputError
-from .io import deferred_log, parse_vector, parse_yaml, read_input_text, short_repr
+from .io import deferred_log, parse_vector, parse_yaml, read_input_text, real_array, short_repr
 
 __all__ = ["Scene", "read_scene", "read_moveit_scene", "scene_from_dict", "pad_scenes"]
 
@@ -63,16 +63,48 @@ QUATERNION_NORM_TOLERANCE = 1e-3
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """Obstacle boxes of one scene."""
+    """Obstacle boxes of one scene.
+
+    The constructor accepts array-likes (``[[x, y, z], ...]``; ``[]`` for no boxes) and stores
+    read-only float64 copies; a wrong type or shape (a single box given as ``[x, y, z]``, say),
+    a non-finite corner, ``min > max``, or a wrong number of names raises
+    :class:`LarcInputError` naming the field and box.
+    """
 
     lo: np.ndarray
     """(B, 3) box minimum corners in the base frame, m."""
     hi: np.ndarray
     """(B, 3) box maximum corners in the base frame, m (hi >= lo componentwise)."""
     box_names: tuple[str, ...] = ()
+    """B names (default ``box0``, ``box1``, ...)."""
     name: str = ""
-    frame: str = "base_link"
+    frame: str = ""
+    """The frame the boxes are in: the robot's root link; "" (default) means exactly that."""
     source: str = ""
+
+    def __post_init__(self):
+        for field in ("name", "frame", "source"):
+            if not isinstance(getattr(self, field), str):
+                raise LarcInputError(f"Scene.{field} must be a string, got {short_repr(getattr(self, field))}")
+        src = self.source or self.name or "Scene"
+        lo, hi = (_boxes_array(getattr(self, f), f"{src}: Scene.{f}") for f in ("lo", "hi"))
+        if lo.shape != hi.shape:
+            raise LarcInputError(f"{src}: Scene.lo has {len(lo)} boxes but Scene.hi has {len(hi)}")
+        for f, arr in (("lo", lo), ("hi", hi)):
+            if not np.isfinite(arr).all():
+                k, i = map(int, np.argwhere(~np.isfinite(arr))[0])
+                raise LarcInputError(f"{src}: Scene.{f}[{k}][{i}] is not finite ({float(arr[k, i])!r})")
+        if (lo > hi).any():
+            k, i = map(int, np.argwhere(lo > hi)[0])
+            raise LarcInputError(f"{src}: box {k}: Scene.lo[{k}][{i}] = {float(lo[k, i])!r} exceeds "
+                                 f"Scene.hi[{k}][{i}] = {float(hi[k, i])!r}")
+        names = self.box_names
+        if isinstance(names, str) or not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+            raise LarcInputError(f"{src}: Scene.box_names must be a list of names, got {short_repr(names)}")
+        if names and len(names) != len(lo):
+            raise LarcInputError(f"{src}: Scene.box_names has {len(names)} names for {len(lo)} boxes")
+        for field, value in (("lo", lo), ("hi", hi), ("box_names", tuple(names) or tuple(f"box{k}" for k in range(len(lo))))):
+            object.__setattr__(self, field, value)
 
     @property
     def n_boxes(self) -> int:
@@ -81,6 +113,13 @@ class Scene:
     @staticmethod
     def empty(name: str = "empty") -> "Scene":
         return Scene(lo=np.zeros((0, 3)), hi=np.zeros((0, 3)), name=name)
+
+
+def _boxes_array(value, where: str) -> np.ndarray:
+    """(B, 3) corners; an empty list or array means no boxes."""
+    if (isinstance(value, (list, tuple)) and len(value) == 0) or (isinstance(value, np.ndarray) and value.shape == (0,)):
+        return real_array(np.zeros((0, 3)), where, 2, 3)
+    return real_array(value, where, 2, 3)
 
 
 def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str | None = None) -> Scene:
@@ -304,7 +343,7 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
         raise toks.error(line, f"'{tok}' after the end line '.' (one scene per file)")
     return Scene(
         lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
-        name=path.stem, frame=frame or "base_link", source=source,
+        name=path.stem, frame=frame or "", source=source,
     )
 
 

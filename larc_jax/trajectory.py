@@ -19,7 +19,7 @@ import numpy as np
 
 from .defaults import VELOCITY_MODES
 from .errors import LarcInputError
-from .io import short_repr
+from .io import real_array, short_repr
 from .robot import Robot
 
 __all__ = [
@@ -46,7 +46,13 @@ The motion constants are derived for the URDF limits, so larger excursions are r
 
 @dataclasses.dataclass(frozen=True)
 class Trajectory:
-    """One recorded trajectory, joints in the robot's active-joint order."""
+    """One recorded trajectory (at least 2 waypoints).
+
+    The constructor accepts array-likes (lists, NumPy or JAX arrays) and stores read-only
+    float64 copies; wrong types or shapes raise :class:`LarcInputError` naming the field.
+    Values (finite, increasing times, joint names and limits of a robot) are checked by
+    :func:`validate_trajectory`, which :func:`~larc_jax.certify.certify` calls.
+    """
 
     t: np.ndarray
     """(K+1,) waypoint times, s, strictly increasing, t[0] is the start of the horizon."""
@@ -55,8 +61,33 @@ class Trajectory:
     qd: np.ndarray
     """(K+1, n) velocities, rad/s / m/s."""
     joint_names: tuple[str, ...]
+    """n joint names, one per column of q and qd."""
     id: str = ""
     source: str = ""
+
+    def __post_init__(self):
+        for field in ("id", "source"):
+            if not isinstance(getattr(self, field), str):
+                raise LarcInputError(f"Trajectory.{field} must be a string, got {short_repr(getattr(self, field))}")
+        src = self.source or self.id or "Trajectory"
+        t = real_array(self.t, f"{src}: Trajectory.t (waypoint times)", 1)
+        if len(t) < 2:
+            raise LarcInputError(f"{src}: Trajectory.t has {len(t)} waypoint{'s' if len(t) != 1 else ''}; "
+                                 "a trajectory needs at least 2")
+        q = real_array(self.q, f"{src}: Trajectory.q (positions)", 2)
+        qd = real_array(self.qd, f"{src}: Trajectory.qd (velocities)", 2)
+        if q.shape[0] != len(t):
+            raise LarcInputError(f"{src}: Trajectory.q has {q.shape[0]} rows, but t has {len(t)} waypoints")
+        if qd.shape != q.shape:
+            raise LarcInputError(f"{src}: Trajectory.qd has shape {qd.shape}, but q has shape {q.shape}")
+        names = self.joint_names
+        if isinstance(names, str) or not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+            raise LarcInputError(f"{src}: Trajectory.joint_names must be a list of joint names, got {short_repr(names)}")
+        if len(names) != q.shape[1]:
+            raise LarcInputError(f"{src}: Trajectory.joint_names has {len(names)} names, but q has {q.shape[1]} "
+                                 "columns (one per joint)")
+        for field, value in (("t", t), ("q", q), ("qd", qd), ("joint_names", tuple(names))):
+            object.__setattr__(self, field, value)
 
     @property
     def duration(self) -> float:

@@ -592,7 +592,11 @@ def _mutate(doc, data) -> None:
         other = data.draw(st.sampled_from(siblings), label="sibling")
         parent[key], parent[other] = parent[other], parent[key]
     elif kind == "perturb":
-        parent[key] = value * data.draw(st.floats(-3, 3), label="scale") + data.draw(st.floats(-2, 2), label="shift")
+        scale, shift = data.draw(st.floats(-3, 3), label="scale"), data.draw(st.floats(-2, 2), label="shift")
+        try:
+            parent[key] = value * scale + shift
+        except OverflowError:  # an integer beyond the float range (BIG) stays as it is
+            pass
     else:
         parent[key] = data.draw(NUMBER_SWAPS, label="number")
 
