@@ -48,10 +48,12 @@ def result_json(result: DatasetResult, scene_path) -> dict:
         "trajectories": [
             {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
              "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
+             "guard_m": num(r.guard_m), "time_offset_s": r.time_offset_s,
              "first_inconclusive": (
                  {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
                   "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,
-                  "clearance_m": num(r.first_inconclusive.clearance_m)}
+                  "clearance_m": num(r.first_inconclusive.clearance_m),
+                  "guard_m": num(r.first_inconclusive.guard_m)}
                  if r.first_inconclusive else None)}
             for r in result
         ],
