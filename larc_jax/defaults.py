@@ -5,7 +5,8 @@ from __future__ import annotations
 
 __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "MAX_DEPTH_LIMIT",
-    "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "DEFAULT_CHUNK_SIZE", "check_margin", "check_depth",
+    "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "DEFAULT_CHUNK_SIZE", "POSITION_TOLERANCE",
+    "check_margin", "check_depth",
 ]
 
 DEFAULT_MARGIN_M = 0.01
@@ -25,6 +26,11 @@ compute them from the positions (:func:`larc_jax.trajectory.finite_difference_ve
 DEFAULT_CHUNK_SIZE = 256
 """Trajectories per chunk when streaming (``certify_stream``, ``larc certify --manifest``): large
 enough to keep the frontier kernels busy, small enough that a chunk takes tens of MB."""
+POSITION_TOLERANCE = 1e-6
+"""Positions may exceed a joint limit by at most this much (rad or m): recorders round. The
+motion constants of joints above an active prismatic joint are derived for its limits widened by
+twice this (:mod:`larc_jax.enclosure.motion`), so larger excursions are refused
+(:func:`larc_jax.trajectory.validate_trajectory`), between waypoints too."""
 DEFAULT_PADDING_M = 0.001
 """Padding added to fitted capsule radii on top of the proven containment, m."""
 

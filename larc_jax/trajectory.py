@@ -17,10 +17,10 @@ from typing import Callable
 
 import numpy as np
 
-from .defaults import VELOCITY_MODES
+from .defaults import POSITION_TOLERANCE, VELOCITY_MODES
 from .errors import LarcInputError
 from .io import real_array, short_repr
-from .robot import Robot
+from .robot import JointType, Robot
 
 __all__ = [
     "Trajectory",
@@ -38,9 +38,6 @@ __all__ = [
 MAX_WAYPOINTS = 100_000
 """Refuse larger trajectories: a recorded arm motion has hundreds of points, not millions."""
 
-POSITION_TOLERANCE = 1e-6
-"""Positions may exceed a joint limit by at most this much (rad or m): recorders round.
-The motion constants are derived for the URDF limits, so larger excursions are refused."""
 
 
 
@@ -170,15 +167,16 @@ def check_joint_names(names: list, want: list, src: str, prefix: str = "") -> No
 
 
 def validate_trajectory(
-    traj: Trajectory, robot: Robot, *, position_tolerance: float = POSITION_TOLERANCE,
-    where: Locator | None = None,
+    traj: Trajectory, robot: Robot, *, where: Locator | None = None,
 ) -> Trajectory:
     """Check a trajectory against the robot and return it with joints in the robot's order.
 
     Raises :class:`LarcInputError` naming the file, field and index of the first problem:
     too many waypoints, non-finite or non-increasing times, non-finite positions/velocities,
     joint names that are not exactly the robot's active joints, positions outside the URDF
-    limits. ``where(k, field, j)`` names waypoint ``k``'s field in the file (default
+    limits, and (for active prismatic joints, whose travel the motion constants of the joints
+    above them assume) a Hermite curve that leaves the limits between waypoints. ``where(k,
+    field, j)`` names waypoint ``k``'s field in the file (default
     ``points[k].field[j]``).
     """
     src = traj.source or traj.id or "<trajectory>"
@@ -196,8 +194,8 @@ def validate_trajectory(
     check_joint_names(names, want, src)
     order = [names.index(n) for n in want]
     q, qd = traj.q[:, order], traj.qd[:, order]
-    lo = np.asarray(robot.q_lower) - position_tolerance
-    hi = np.asarray(robot.q_upper) + position_tolerance
+    lo = np.asarray(robot.q_lower) - POSITION_TOLERANCE
+    hi = np.asarray(robot.q_upper) + POSITION_TOLERANCE
     bad = (q < lo) | (q > hi)
     if bad.any():
         k, j = map(int, np.argwhere(bad)[0])
@@ -205,5 +203,32 @@ def validate_trajectory(
             f"{src}: {loc(k, 'positions', order[j])} = {float(q[k, j])!r} for {want[j]} is outside its "
             f"limits [{robot.q_lower[j]}, {robot.q_upper[j]}]"
         )
+    for i, jtype in zip(robot.q_index, robot.joint_type):
+        if i >= 0 and jtype == JointType.PRISMATIC:
+            _check_prismatic_curve(traj.t, q[:, i], qd[:, i], float(lo[i]), float(hi[i]), src, loc, want[i], order[i])
     return dataclasses.replace(traj, q=q, qd=qd, joint_names=tuple(want))
+
+
+def _check_prismatic_curve(t, q, v, lo: float, hi: float, src: str, loc: Locator, name: str, j: int) -> None:
+    """The Hermite curve of an active prismatic joint must stay within its limits (widened by
+    the tolerance) between waypoints too: its extremes on a segment are at the ends or at the
+    roots of the quadratic velocity (:mod:`larc_jax.hermite`, form (*))."""
+    h = np.diff(t)
+    q0, q1, v0, v1 = q[:-1], q[1:], v[:-1], v[1:]
+    d = (q1 - q0) / h
+    c0, c1, c2 = v0, 6 * d - 4 * v0 - 2 * v1, 3 * v0 + 3 * v1 - 6 * d
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disc = np.sqrt(np.maximum(c1 * c1 - 4 * c2 * c0, 0.0))
+        roots = [np.where(c2 != 0, (-c1 + sgn * disc) / (2 * c2), np.where(c1 != 0, -c0 / c1, 0.0)) for sgn in (1, -1)]
+    for s in roots:
+        s = np.clip(np.nan_to_num(s, nan=0.0), 0.0, 1.0)
+        qs = ((1 + 2 * s) * (1 - s) ** 2 * q0 + s * (1 - s) ** 2 * h * v0 + s * s * (3 - 2 * s) * q1
+              + s * s * (s - 1) * h * v1)
+        bad = (qs < lo) | (qs > hi)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise LarcInputError(
+                f"{src}: between {loc(k, 'positions', j)} and {loc(k + 1, 'positions', j)} the Hermite curve of "
+                f"prismatic joint {name} reaches {float(qs[k])!r}, outside its limits (the velocities carry it "
+                f"past the limit; the motion constants hold within the limits only)")
 

@@ -87,3 +87,40 @@ def test_fit_capsules_command_bad_requests(tmp_path, capsys):
     assert larc_main(["fit-capsules", str(urdf), "-o", str(out), "--capsules-per-link", "link6=2"]) == 2
     assert "link 'link6' is not a link with collision geometry" in capsys.readouterr().err
     assert not out.exists()
+
+
+SLIDER = """<?xml version="1.0"?>
+<robot name="slider">
+  <link name="base"><collision><geometry><box size="0.1 0.1 0.05"/></geometry></collision></link>
+  <link name="turn"><collision><geometry><cylinder radius="0.03" length="0.1"/></geometry></collision></link>
+  <link name="carriage"><collision><geometry><box size="0.05 0.05 0.05"/></geometry></collision></link>
+  <joint name="spin" type="revolute"><parent link="base"/><child link="turn"/><origin xyz="0 0 0.05"/>
+    <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="slide" type="prismatic"><parent link="turn"/><child link="carriage"/><origin xyz="0 0 0.1"/>
+    <axis xyz="1 0 0"/><limit lower="0" upper="0.2" effort="1" velocity="1"/></joint>
+</robot>
+"""
+
+
+def test_prismatic_curve_beyond_its_limits_is_refused(tmp_path):
+    """The motion constant of 'spin' assumes the carriage within its stroke [0, 0.2] m; waypoints
+    within it whose velocities carry the Hermite curve beyond 0.2 m would be under-inflated (main
+    accepted them). Refused, naming the segment and joint; a curve inside the stroke is fine."""
+    import numpy as np
+
+    from larc_jax import Scene, Trajectory, certify
+
+    (tmp_path / "slider.urdf").write_text(SLIDER)
+    out = tmp_path / "slider.yaml"
+    assert larc_main(["-q", "fit-capsules", str(tmp_path / "slider.urdf"), "-o", str(out)]) == 0
+    robot, capsules = load_robot_file(out)
+    over = Trajectory(t=[0.0, 1.0], q=[[0.0, 0.1], [0.0, 0.2]], qd=[[0.0, 1.0], [0.0, 1.0]],
+                      joint_names=["spin", "slide"])
+    with pytest.raises(LarcInputError, match=r"between points\[0\].positions\[1\] and points\[1\].positions\[1\] the "
+                                             r"Hermite curve of prismatic joint slide reaches 0.2\d+, outside its limits"):
+        certify(over, Scene.empty(), robot, capsules)
+    inside = Trajectory(t=[0.0, 1.0], q=[[0.0, 0.0], [1.0, 0.2]], qd=[[0.0, 0.0], [0.0, 0.0]],
+                        joint_names=["spin", "slide"])
+    assert certify(inside, Scene.empty(), robot, capsules)[0].certified
+    assert np.asarray(capsules.motion_a)[list(capsules.names).index("carriage"), 0] > 0.2
+

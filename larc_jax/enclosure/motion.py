@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..defaults import POSITION_TOLERANCE
 from ..robot import JointType, Robot
 
 __all__ = ["motion_constants"]
@@ -86,8 +87,9 @@ def motion_constants(
                 c1, ax = J[:3, 3], J[:3, :3] @ axis[k]
                 if robot.joint_type[k] == JointType.PRISMATIC:
                     qk = robot.q_index[k]
-                    total += max(np.linalg.norm(proj @ (c1 + lower[qk] * ax)),
-                                 np.linalg.norm(proj @ (c1 + upper[qk] * ax)))
+                    # the stroke as validated: limits widened by the tolerance (twice, for rounding)
+                    lo_k, hi_k = lower[qk] - 2 * POSITION_TOLERANCE, upper[qk] + 2 * POSITION_TOLERANCE
+                    total += max(np.linalg.norm(proj @ (c1 + lo_k * ax)), np.linalg.norm(proj @ (c1 + hi_k * ax)))
                 else:
                     total += np.linalg.norm(proj @ c1)
                 proj = np.eye(3)
