@@ -121,7 +121,7 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
     from larc_jax.certify import _check_inputs  # noqa: PLC2701 - the benchmark measures internals
     from larc_jax.interval import trajectory_rounding
 
-    trajs, scenes = _check_inputs(trajs, scenes, robot, capsules, 0.01, 9, 4)
+    trajs, scenes, *_ = _check_inputs(trajs, scenes, robot, capsules, 0.01, 9, 4, np.float64, None)
     bounds = [trajectory_rounding(t, robot, capsules) for t in trajs]
     batch = prepare(trajs, scenes, robot, capsules, 0.01, np.float64, bounds)
     F = BUCKETS[-1]

@@ -52,7 +52,7 @@ __all__ = [
 
 STATE_FILE = "_larc_manifest.json"
 MANIFEST_RESULT_COLUMNS = ("row", "id", "trajectory", "scene", "certified", "evaluations", "min_clearance_m",
-                           "duration_s", "method", "margin_m", "max_depth", "blocked_t0", "blocked_t1",
+                           "guard_m", "duration_s", "method", "margin_m", "max_depth", "blocked_t0", "blocked_t1",
                            "blocked_capsule", "blocked_box", "error")
 """Columns of a manifest results dataset: one row per manifest row."""
 
@@ -214,7 +214,8 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     out["margin_m"] = job.margin_m
     out["max_depth"] = job.max_depth
     out["error"] = [errors.get(int(r), "") for r in out["row"]]
-    for col, fill in (("blocked_t0", np.nan), ("blocked_t1", np.nan), ("blocked_capsule", ""), ("blocked_box", "")):
+    for col, fill in (("guard_m", np.nan), ("blocked_t0", np.nan), ("blocked_t1", np.nan), ("blocked_capsule", ""),
+                      ("blocked_box", "")):
         if col not in out:
             out[col] = fill
         out[col] = out[col].fillna(fill)

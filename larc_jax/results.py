@@ -24,7 +24,7 @@ __all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUM
 LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box")
 """Columns of :meth:`DatasetResult.leaves_dataframe` (and of ``larc certify --leaves``)."""
 
-RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "duration_s",
+RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "guard_m", "duration_s",
                   "blocked_t0", "blocked_t1", "blocked_capsule", "blocked_box")
 """Columns of :meth:`DatasetResult.to_dataframe`."""
 
@@ -216,7 +216,7 @@ class DatasetResult:
         return pd.DataFrame({
             "id": list(self.ids), "scene": list(self.scene_names), "method": self.method,
             "certified": self.certified.astype(bool), "evaluations": self.evaluations.astype(np.int64),
-            "min_clearance_m": self.min_clearance_m, "duration_s": self.duration_s,
+            "min_clearance_m": self.min_clearance_m, "guard_m": self.guard_m, "duration_s": self.duration_s,
             "blocked_t0": np.where(has, take(lv.t0), np.nan), "blocked_t1": np.where(has, take(lv.t1), np.nan),
             "blocked_capsule": np.where(has, names[take(lv.capsule) + 1], ""),
             "blocked_box": np.where(has, boxes[take(lv.box) + 1], ""),
