@@ -55,6 +55,30 @@ def dyadic_ends(t_start, t_end, depth, index):
     return a, b
 
 
+_SEEN: set = set()
+"""Call signatures (function, shapes, dtypes, static structure) seen by :func:`_call` with an
+``on_compile`` listener: a call with a new one compiles first (or loads from the persistent
+cache). Tracked only when someone listens, so the default path pays nothing."""
+
+
+def _call(fn, args, on_compile: Callable[[bool], None] | None):
+    """``fn(*args)``, telling ``on_compile`` (True, then False) when the call compiles."""
+    if on_compile is None:
+        return fn(*args)
+    leaves = jax.tree.leaves(args)
+    sig = (fn, jax.tree.structure(args), tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
+           jax.config.jax_enable_x64)
+    new = sig not in _SEEN
+    if new:
+        on_compile(True)
+    try:
+        return fn(*args)
+    finally:
+        _SEEN.add(sig)
+        if new:
+            on_compile(False)
+
+
 @jax.jit
 def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, traj, scene, a, b, margin):
     """Evaluate F intervals: interval i belongs to trajectory ``traj[i]`` in scene ``scene[i]``.
@@ -122,8 +146,10 @@ class Batch:
             cost = _evaluate_intervals.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
         return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
 
-    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None):
-        """``(a, b, g, capsule, box)`` for every interval (NumPy arrays)."""
+    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
+                 on_compile: Callable[[bool], None] | None = None):
+        """``(a, b, g, capsule, box)`` for every interval (NumPy arrays); ``on_chunk(n)`` after
+        each chunk of ``n`` intervals, ``on_compile(True/False)`` around a compiling call."""
         a, b = self.endpoints(traj, depth, index)
         if self.dtype == np.float32:  # round outwards so float32 intervals still cover I
             a = np.nextafter(a.astype(np.float32), np.float32(-np.inf))
@@ -144,10 +170,10 @@ class Batch:
             bb = np.concatenate([b[sl], np.repeat(b[start], pad)]).astype(self.dtype)
             with jax.enable_x64(self.dtype == np.float64):
                 tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
-                out = _evaluate_intervals(
+                out = _call(_evaluate_intervals, (
                     self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
                     self.box_mask, tr_s, sc_s, aa, bb, self.margin,
-                )
+                ), on_compile)
                 gg, cc, bx = (np.asarray(x) for x in out)
             g[sl], cap[sl], box[sl] = gg[: stop - start], cc[: stop - start], bx[: stop - start]
             if on_chunk:
@@ -156,11 +182,12 @@ class Batch:
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
-            margin: float, dtype, devices=None) -> Batch:
+            margin: float, dtype, devices=None, on_compile: Callable[[bool], None] | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene per trajectory).
 
     ``devices``: the devices to shard each interval batch over (default: every device of JAX's
     default backend, e.g. all local GPUs; on a CPU, one device unless XLA is asked for more).
+    ``on_compile``: see :meth:`Batch.evaluate`.
     """
     dtype = np.dtype(dtype)
     # Shapes are rounded up to size classes (see size_class); padded knots lie after t_K and
@@ -174,11 +201,11 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
     lo, hi, mask = pad_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)))
     with jax.enable_x64(dtype == np.float64):
-        splines = _build_splines(
+        splines = _call(_build_splines, (
             np.stack([p[0] for p in padded]).astype(dtype),
             np.stack([p[1] for p in padded]).astype(dtype),
             np.stack([p[2] for p in padded]).astype(dtype),
-        )
+        ), on_compile)
     return Batch(
         robot=_cast(robot, dtype), capsules=_cast(capsules, dtype), splines=splines,
         box_lo=lo.astype(dtype), box_hi=hi.astype(dtype), box_mask=mask, scene_of=scene_of,

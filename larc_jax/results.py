@@ -95,6 +95,8 @@ class TrajectoryResult:
     """The deepest bisection allowed."""
     guard_m: float = float("nan")
     """The rounding guard every leaf's clearance was compared against, m."""
+    excluded_links: tuple[str, ...] = ()
+    """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -127,6 +129,12 @@ class DatasetResult:
     margin_m: float
     max_depth: int
     wall_time_s: float
+    """Seconds the whole call took, compilation included."""
+    compile_time_s: float = 0.0
+    """Of ``wall_time_s``, seconds JAX spent tracing, lowering and compiling kernels (or loading
+    them from the persistent cache, :mod:`larc_jax.compilation`)."""
+    excluded_links: tuple[str, ...] = ()
+    """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
@@ -156,7 +164,7 @@ class DatasetResult:
             min_clearance_m=float(self.min_clearance_m[i]),
             leaves=tuple(self._leaf(r) for r in range(sl.start, sl.stop)),
             duration_s=float(self.duration_s[i]), scene=self.scene_names[i], margin_m=self.margin_m,
-            max_depth=self.max_depth, guard_m=float(self.guard_m[i]),
+            max_depth=self.max_depth, guard_m=float(self.guard_m[i]), excluded_links=self.excluded_links,
         )
 
     @functools.cached_property

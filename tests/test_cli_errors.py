@@ -119,7 +119,7 @@ def write(path: Path, content) -> None:
 def robot_doc(**changes) -> dict:
     from larc_jax.urdf import piper_urdf_path
 
-    doc = yaml.safe_load((ROOT / "configs" / "piper_capsules.yaml").read_text())
+    doc = yaml.safe_load((ROOT / "larc_jax" / "data" / "piper_capsules.yaml").read_text())
     doc = {"urdf": str(piper_urdf_path()), **doc}
     for k, v in changes.items():
         if v is MISSING:

@@ -1,0 +1,131 @@
+"""JAX compilation: the persistent compilation cache, and how long compiling took.
+
+Every ``certify`` call runs jitted kernels whose shapes depend on the dataset (waypoint, box and
+frontier size classes, :mod:`larc_jax.batch`); each new shape is traced, lowered and compiled by
+XLA, seconds each on a CPU. JAX's *persistent compilation cache* keeps the compiled executables
+on disk, so a later process loads them instead of compiling again (it still traces and lowers,
+which computes the cache key).
+
+* The ``larc`` command line turns the cache on by default in :func:`default_cache_dir`
+  (``$XDG_CACHE_HOME/larc_jax/jax`` or ``~/.cache/larc_jax/jax``); ``--no-compile-cache`` or
+  ``LARC_COMPILE_CACHE=0`` turn it off, ``LARC_COMPILE_CACHE=/some/dir`` moves it.
+* The library never changes ``jax.config`` by itself (importing it flips nothing): Python
+  users opt in with :func:`enable_compile_cache`, which sets JAX's global cache options (the
+  cache directory, and thresholds of zero so that even small kernels are kept).
+* :class:`CompileClock` measures, while active, the seconds JAX spends tracing, lowering and
+  compiling (or loading from the cache), from :mod:`jax.monitoring` events; ``certify`` reports
+  them as :attr:`larc_jax.results.DatasetResult.compile_time_s`, separately from the run time.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+__all__ = ["CACHE_ENV", "default_cache_dir", "cache_dir_from_env", "enable_compile_cache", "CompileClock"]
+
+CACHE_ENV = "LARC_COMPILE_CACHE"
+"""Environment variable: ``0`` / ``false`` / ``off`` / ``no`` turn the command line's cache off; a
+path puts it there."""
+
+_OFF = {"0", "false", "off", "no"}
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/larc_jax/jax``, else ``~/.cache/larc_jax/jax``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "larc_jax" / "jax"
+
+
+def cache_dir_from_env() -> Path | None:
+    """The cache folder ``LARC_COMPILE_CACHE`` asks for: ``None`` when it turns the cache off,
+    the path it names, or :func:`default_cache_dir` when it is unset or empty."""
+    value = os.environ.get(CACHE_ENV, "").strip()
+    if value.lower() in _OFF:
+        return None
+    return Path(value).expanduser() if value else default_cache_dir()
+
+
+def enable_compile_cache(path: str | os.PathLike | None = None) -> Path:
+    """Turn on JAX's persistent compilation cache in ``path`` (default
+    :func:`default_cache_dir`) for this process, keeping every compiled kernel however small or
+    quick to compile. This changes JAX's global configuration (it is an explicit opt-in; the
+    library never calls it by itself). Returns the folder."""
+    import jax
+
+    folder = Path(path).expanduser() if path is not None else default_cache_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # no size threshold
+    jax.config.update("jax_enable_compilation_cache", True)
+    return folder
+
+
+_TRACE = "/jax/core/compile/jaxpr_trace_duration"
+_LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_COMPILE = "/jax/core/compile/backend_compile_duration"  # XLA compile, or load from the cache
+_CACHE_HIT = "/jax/compilation_cache/cache_hits"
+
+
+class CompileClock:
+    """While active (``with CompileClock() as clock:``), counts what JAX compiles in this
+    process: ``compiles`` (executables compiled or loaded from the persistent cache),
+    ``cache_hits`` (of those, loaded), and seconds spent ``trace_s``, ``lower_s`` and
+    ``compile_s`` (XLA compilation or cache load); ``seconds`` is their sum.
+
+    One :mod:`jax.monitoring` listener, installed on first use, feeds every active clock (JAX
+    cannot remove a listener in every version). Nested and concurrent clocks all count.
+    """
+
+    _active: list["CompileClock"] = []
+    _lock = threading.Lock()
+    _installed = False
+
+    def __init__(self):
+        self.compiles = 0
+        self.cache_hits = 0
+        self.trace_s = 0.0
+        self.lower_s = 0.0
+        self.compile_s = 0.0
+
+    @property
+    def seconds(self) -> float:
+        return self.trace_s + self.lower_s + self.compile_s
+
+    @classmethod
+    def _install(cls) -> None:
+        with cls._lock:
+            if cls._installed:
+                return
+            import jax.monitoring
+
+            def on_duration(event: str, duration: float, **kwargs) -> None:
+                field = {_TRACE: "trace_s", _LOWER: "lower_s", _COMPILE: "compile_s"}.get(event)
+                if field is None:
+                    return
+                for clock in list(cls._active):
+                    setattr(clock, field, getattr(clock, field) + float(duration))
+                    if event == _COMPILE:
+                        clock.compiles += 1
+
+            def on_event(event: str, **kwargs) -> None:
+                if event == _CACHE_HIT:
+                    for clock in list(cls._active):
+                        clock.cache_hits += 1
+
+            jax.monitoring.register_event_duration_secs_listener(on_duration)
+            jax.monitoring.register_event_listener(on_event)
+            cls._installed = True
+
+    def __enter__(self) -> "CompileClock":
+        self._install()
+        with self._lock:
+            self._active.append(self)
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        with self._lock:
+            self._active.remove(self)
+        return False

@@ -1,0 +1,94 @@
+"""Compilation: the persistent cache of the command line (on by default, off by flag or
+environment), compile time reported as such, and a library that flips no global JAX option."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
+ARGS = ["certify", str(EXAMPLES / "reach_left.yaml"), "--scene", str(EXAMPLES / "cell.yaml"), "--max-depth", "4"]
+
+
+def run(tmp_path, *args, **env):
+    e = dict(os.environ, **env)
+    return subprocess.run([sys.executable, "-m", "larc_jax.cli", *args], cwd=tmp_path, env=e, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_help_has_no_raw_rest_markup():
+    for sub in ([], ["certify"], ["explain"], ["fit-capsules"]):
+        p = subprocess.run([sys.executable, "-m", "larc_jax.cli", *sub, "--help"], capture_output=True, text=True)
+        assert p.returncode == 0 and "`" not in p.stdout, p.stdout
+
+
+def test_cache_is_filled_then_used_and_compiling_is_shown(tmp_path):
+    cache = tmp_path / "cache"
+    p = run(tmp_path, "-v", "--progress", *ARGS, "--json", "first.json", LARC_COMPILE_CACHE=str(cache))
+    assert p.returncode == 0, p.stderr
+    assert "compiling kernels" in p.stderr  # the progress bar says so while JAX compiles
+    assert f"compilation cache: {cache}" in p.stderr
+    entries = list(cache.iterdir())
+    assert entries, "nothing was written to the compilation cache"
+    first = json.loads((tmp_path / "first.json").read_text())
+    assert 0 < first["compile_time_s"] <= first["wall_time_s"]
+    assert "compiling" in p.stdout  # the summary line separates compile time
+    p = run(tmp_path, "-v", *ARGS, LARC_COMPILE_CACHE=str(cache))
+    assert p.returncode == 0, p.stderr
+    line = next(x for x in p.stderr.splitlines() if "kernels:" in x)
+    n, hits = (int(w) for w in line.split("kernels: ")[1].replace(",", "").split()[:5:4])
+    assert n > 0 and hits == n, line  # every kernel came from the cache
+    assert sorted(cache.iterdir()) == sorted(entries)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["env", "flag"])
+def test_cache_can_be_turned_off(tmp_path, how):
+    xdg = tmp_path / "xdg"
+    if how == "env":
+        p = run(tmp_path, "-v", *ARGS, LARC_COMPILE_CACHE="0", XDG_CACHE_HOME=str(xdg))
+    else:
+        p = run(tmp_path, "-v", "--no-compile-cache", *ARGS, LARC_COMPILE_CACHE="", XDG_CACHE_HOME=str(xdg))
+    assert p.returncode == 0, p.stderr
+    assert "compilation cache: off" in p.stderr and not xdg.exists()
+
+
+def test_default_cache_folder_follows_xdg(tmp_path, monkeypatch):
+    from larc_jax.compilation import cache_dir_from_env, default_cache_dir
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.delenv("LARC_COMPILE_CACHE", raising=False)
+    assert default_cache_dir() == tmp_path / "larc_jax" / "jax" == cache_dir_from_env()
+    for off in ("0", "off", "False", "no"):
+        monkeypatch.setenv("LARC_COMPILE_CACHE", off)
+        assert cache_dir_from_env() is None
+    monkeypatch.setenv("LARC_COMPILE_CACHE", str(tmp_path / "c"))
+    assert cache_dir_from_env() == tmp_path / "c"
+
+
+@pytest.mark.slow
+def test_library_flips_no_global_jax_option():
+    code = ("import jax, larc_jax as lj, numpy as np\n"
+            "before = (jax.config.jax_compilation_cache_dir, jax.config.jax_enable_x64)\n"
+            "r = lj.load_robot(); c = lj.load_capsules(lj.default_capsule_path(), r)\n"
+            "t = lj.read_trajectory(%r, r)\n"
+            "lj.certify([t], lj.read_scene(%r), r, c, max_depth=2)\n"
+            "assert (jax.config.jax_compilation_cache_dir, jax.config.jax_enable_x64) == before == (None, False), before\n"
+            "print('ok')\n") % (str(EXAMPLES / "reach_left.yaml"), str(EXAMPLES / "cell.yaml"))
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "ok" in p.stdout, p.stderr
+
+
+def test_enable_compile_cache_is_an_explicit_opt_in(tmp_path):
+    code = ("import jax\nfrom larc_jax.compilation import enable_compile_cache\n"
+            "d = enable_compile_cache(%r)\n"
+            "assert jax.config.jax_compilation_cache_dir == str(d) and d.is_dir()\n"
+            "assert jax.config.jax_persistent_cache_min_compile_time_secs == 0\n"
+            "print('ok')\n") % str(tmp_path / "c")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "ok" in p.stdout, p.stderr
