@@ -341,7 +341,7 @@ def _certify_manifest(args) -> int:
     _check_certify_options(args)
     job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, method=args.method,
                       margin_m=args.margin, max_depth=args.max_depth, velocities=args.velocities,
-                      chunk_size=args.chunk_size)
+                      chunk_size=args.chunk_size, ignore_links=tuple(args.ignore_link or ()))
     rows_done = [0]
     with _progress_bar(args, desc=f"certifying ({args.method})", unit=" intervals") as bar:
 
