@@ -220,9 +220,10 @@ def audit_stage(layout, config: dict, workers: int, force: bool) -> dict:
 # ----------------------------------------------------------------------------------------------
 
 
-def dataset_items(traj_root: str | Path, config: dict, scenes: Sequence[str] | None = None) -> list[dict]:
+def dataset_items(traj_root: str | Path, config: dict | None = None, scenes: Sequence[str] | None = None) -> list[dict]:
     """Jobs {traj_id, scene, path, scene_path} for every ``<scene>/*.yaml`` under ``traj_root``;
-    scene files from the protocol."""
+    scene files from the protocol (default ``configs/stageB.yaml``)."""
+    config = load_config(CONFIG_PATH) if config is None else config
     traj_root = Path(traj_root)
     spaths = scene_paths(config)
     items = []
@@ -232,11 +233,14 @@ def dataset_items(traj_root: str | Path, config: dict, scenes: Sequence[str] | N
     return items
 
 
-def audit_dataset(items: Iterable[dict], *, hz: float, allowed_path: str | Path, workers: int = 2,
+def audit_dataset(items: Iterable[dict], *, hz: float, allowed_path: str | Path | None = None, workers: int = 2,
                   progress: bool = True) -> list[dict]:
     """Audit many trajectories (jobs from :func:`dataset_items`) in ``workers`` processes; rows
-    of :data:`AUDIT_FIELDS` in the order of ``items``."""
+    of :data:`AUDIT_FIELDS` in the order of ``items``. ``allowed_path``: the allowed
+    self-collision pairs (default: the protocol's)."""
     items = list(items)
+    if allowed_path is None:
+        allowed_path = resolve(load_config(CONFIG_PATH)["allowed_collisions"])
     out: dict[str, dict] = {}
     _run_jobs(items, str(allowed_path), hz, workers, lambda row: out.__setitem__(row["traj_id"], row), progress)
     return [out[it["traj_id"]] for it in items]

@@ -23,6 +23,7 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
+from .compilation import cached_kernel_call
 from .enclosure.capsule import CapsuleModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import coordinate_scale, evaluate_interval, rounding_guard
@@ -90,6 +91,12 @@ def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, traj
         return ev.g, ev.capsule, ev.box
 
     return jax.vmap(one)(traj, scene, a, b)
+
+
+def _evaluate_intervals_cached(*args):
+    """:func:`_evaluate_intervals`, through its export kept in the compilation cache when that
+    is on (:func:`larc_jax.compilation.cached_kernel_call`; one device)."""
+    return cached_kernel_call(_evaluate_intervals, args)
 
 
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
@@ -170,7 +177,8 @@ class Batch:
             bb = np.concatenate([b[sl], np.repeat(b[start], pad)]).astype(self.dtype)
             with jax.enable_x64(self.dtype == np.float64):
                 tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
-                out = _call(_evaluate_intervals, (
+                kernel = _evaluate_intervals if len(self.devices) > 1 else _evaluate_intervals_cached
+                out = _call(kernel, (
                     self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
                     self.box_mask, tr_s, sc_s, aa, bb, self.margin,
                 ), on_compile)

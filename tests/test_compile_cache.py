@@ -38,12 +38,17 @@ def test_cache_is_filled_then_used_and_compiling_is_shown(tmp_path):
     first = json.loads((tmp_path / "first.json").read_text())
     assert 0 < first["compile_time_s"] <= first["wall_time_s"]
     assert "compiling" in p.stdout  # the summary line separates compile time
-    p = run(tmp_path, "-v", *ARGS, LARC_COMPILE_CACHE=str(cache))
+    p = run(tmp_path, "-v", *ARGS, "--leaves", "warm.csv", LARC_COMPILE_CACHE=str(cache))
     assert p.returncode == 0, p.stderr
     line = next(x for x in p.stderr.splitlines() if "kernels:" in x)
     n, hits = (int(w) for w in line.split("kernels: ")[1].replace(",", "").split()[:5:4])
     assert n > 0 and hits == n, line  # every kernel came from the cache
     assert sorted(cache.iterdir()) == sorted(entries)
+    assert list((cache / "exported").glob("*.jaxexport")) and list((cache / "robots").glob("*.npz"))
+    # Loaded kernels compute exactly what freshly traced ones do.
+    p = run(tmp_path, "--no-compile-cache", *ARGS, "--leaves", "cold.csv", LARC_COMPILE_CACHE="")
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "warm.csv").read_bytes() == (tmp_path / "cold.csv").read_bytes()
 
 
 @pytest.mark.slow
@@ -92,3 +97,68 @@ def test_enable_compile_cache_is_an_explicit_opt_in(tmp_path):
             "print('ok')\n") % str(tmp_path / "c")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0 and "ok" in p.stdout, p.stderr
+
+
+def test_exported_kernel_is_the_same_computation(tmp_path, monkeypatch, robot, capsules):
+    """The traced kernel kept in the cache (jax.export) gives bit-identical results to the jitted
+    one, when first exported and when loaded by a later process (simulated: in-memory table
+    cleared); a changed argument structure gets its own export."""
+    import numpy as np
+
+    from larc_jax import batch as B
+    from larc_jax import compilation
+    from larc_jax.scene import read_scene
+    from larc_jax.trajectory_files import read_trajectory
+
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
+    monkeypatch.setattr(compilation, "_LOADED", {})
+    traj = read_trajectory(EXAMPLES / "sweep_front.yaml", robot)
+    scene = read_scene(EXAMPLES / "cell.yaml")
+    rng = np.random.default_rng(3)
+    for caps in (capsules, capsules.without_links(robot, ["base_link"])):
+        b = B.prepare([traj], [scene], robot, caps, 0.01, np.float64, devices=None)
+        n = 16
+        tr = np.zeros(n, np.int64)
+        depth = rng.integers(0, 8, n)
+        index = np.array([rng.integers(0, 2**d) for d in depth])
+        a, bb = b.endpoints(tr, depth, index)
+        args = (b.robot, b.capsules, b.splines, b.box_lo, b.box_hi, b.box_mask, tr, b.scene_of[tr], a, bb, b.margin)
+        import jax
+
+        with jax.enable_x64(True):
+            ref = [np.asarray(x) for x in B._evaluate_intervals(*args)]
+            first = [np.asarray(x) for x in compilation.cached_kernel_call(B._evaluate_intervals, args)]
+            compilation._LOADED.clear()
+            loaded = [np.asarray(x) for x in compilation.cached_kernel_call(B._evaluate_intervals, args)]
+        for r, f, l in zip(ref, first, loaded):
+            np.testing.assert_array_equal(r, f)
+            np.testing.assert_array_equal(r, l)
+    assert len(list((tmp_path / "exported").glob("*.jaxexport"))) == 2
+
+
+def test_kept_robot_is_the_built_robot(tmp_path, monkeypatch):
+    import dataclasses
+
+    import numpy as np
+
+    from larc_jax import compilation
+    from larc_jax.urdf import load_robot
+
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
+    built = load_robot()
+    (kept,) = (tmp_path / "robots").glob("*.npz")
+    cached = load_robot()
+    assert cached is not built
+    for f in dataclasses.fields(built):
+        x, y = getattr(built, f.name), getattr(cached, f.name)
+        if isinstance(x, np.ndarray) or hasattr(x, "shape"):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+            assert np.asarray(x).dtype == np.asarray(y).dtype
+        else:
+            assert x == y and type(x) is type(y), f.name
+    # Other arguments, another entry; a kept robot whose mesh is gone is not used.
+    load_robot(held_joint_values={"joint7": -0.01})
+    assert len(list((tmp_path / "robots").glob("*.npz"))) == 2
+    key = {"any": "thing"}
+    compilation.keep_robot(key, built, [tmp_path / "gone.stl"])
+    assert compilation.cached_robot(key) is None
