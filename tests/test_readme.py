@@ -79,7 +79,7 @@ def test_ci_runs_the_readme_quick_start_verbatim():
     ci = (ROOT / ".ci" / "run").read_text()
     assert "run_readme_command tests" in ci and "run_readme_command main-job" in ci
     assert "git status --porcelain" in ci
-    bash = [b for _, b in _blocks("bash")]
+    bash = [b.strip() for _, b in _blocks("bash")]
     for name in ("main-job", "tests", "fast-tests"):
         cmd = _ci_command(name)
         assert cmd in bash and cmd.startswith("python3 -m venv .venv && .venv/bin/pip install -q -e '.[dev]' && ")
@@ -108,3 +108,19 @@ def test_stageB_summary_is_the_generated_one():
     summary = (ROOT / "results" / "stageB" / "summary.md").read_text()
     i, j = README.index(SUMMARY_BEGIN) + len(SUMMARY_BEGIN), README.index(SUMMARY_END)
     assert README[i:j].strip() == summary.strip()
+
+
+def test_cold_start_figures_are_the_generated_ones():
+    """The README's cold-start table quotes results/bench/coldstart_cpu.json."""
+    import json
+
+    doc = json.loads((ROOT / "results" / "bench" / "coldstart_cpu.json").read_text())
+    section = README[README.index("### Cold start"):README.index("## Code map")]
+    for key, label in (("first_ever", "first ever"), ("warm_cache", "second and later"),
+                       ("no_cache", "`--no-compile-cache`")):
+        row = next(line for line in section.splitlines() if line.startswith(f"| {label}"))
+        r = doc[key]
+        cells = [f"{r[k]:.2f} s" for k in ("wall_s", "robot_s", "compile_s", "run_s")]
+        assert row.split(" | ")[1:] == cells[:-1] + [cells[-1] + " |"], row
+    assert f"{doc['import_s']:.2f} s" in section
+    assert f"load average {doc['machine']['load_average_before'][0]:.2f}" in section
