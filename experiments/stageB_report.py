@@ -13,6 +13,7 @@ project's README quotes, and replaces that section of ``README.md`` (between the
 
 from __future__ import annotations
 
+import os
 import platform
 import re
 from pathlib import Path
@@ -269,7 +270,8 @@ def discussion_values(df: pd.DataFrame, timing: pd.DataFrame, gen: pd.DataFrame,
              pairs_per_scene=str(int(config["pairs_per_scene"])), margin_mm=f"{1e3 * float(config['margin_m']):g}",
              max_depth=str(max_depth), fine_intervals=str(2**max_depth), audit_hz=str(config["audit_hz"]),
              padding_cm=f"{100 * float(config['generation']['planning_padding_m']):g}",
-             padding_mm=f"{1e3 * float(config['generation']['planning_padding_m']):g}")
+             padding_mm=f"{1e3 * float(config['generation']['planning_padding_m']):g}",
+             cpus=str(os.cpu_count()))
     for m in METHODS:
         v[f"cert_{m}"] = str(s["cert"][m])
         v[f"paper_cert_{m}"] = str(P[f"certified_{m}"])
@@ -364,7 +366,7 @@ def fill_template(text: str, values: dict[str, str], source: str = "template") -
 SUMMARY_TEMPLATE = """\
 {{n}} PIPER trajectories ({{scenes}} scenes × {{pairs_per_scene}} start–goal pairs × {OMPL-planned, direct
 smoothstep control}), ρ = {{margin_mm}} mm, depth {{max_depth}}, audited with FCL on the official meshes at
-{{audit_hz}} Hz plus every waypoint; 2-core CPU, no GPU. The paper's figures are beside ours. Full tables,
+{{audit_hz}} Hz plus every waypoint; {{cpus}}-core CPU, no GPU. The paper's figures are beside ours. Full tables,
 figures and an explanation of every difference: [`results/stageB/README.md`](results/stageB/README.md).
 
 | Metric | Ours | Paper |
