@@ -5,8 +5,12 @@
   commands give ``../shared/...``) is made absolute here, once, against the folder pytest was
   started from: tests that run ``larc`` in temporary folders inherit the environment and must
   still find PIPER.
-* ``larc`` processes started by tests share one compilation cache for the session
-  (``LARC_COMPILE_CACHE`` in a temporary folder): hermetic, and later runs skip compiling.
+* Tests share a persistent compilation cache (:mod:`larc_jax.compilation`), in this process
+  and in the ``larc`` processes they start (``LARC_COMPILE_CACHE``): by default
+  ``$XDG_CACHE_HOME/larc_jax/tests`` (``~/.cache/...``), so a second test session compiles
+  little; ``LARC_TEST_COMPILE_CACHE=DIR`` moves it, ``LARC_TEST_COMPILE_CACHE=tmp`` uses a fresh
+  temporary folder (a cold, hermetic session). Entries are keyed by the compiled program (and
+  traced kernels by the library's sources), so a code change never meets a stale entry.
 """
 
 from __future__ import annotations
@@ -25,8 +29,21 @@ if os.environ.get(_ENV):
 elif _SHARED.is_dir():
     os.environ[_ENV] = str(_SHARED)
 
-_CACHE = tempfile.TemporaryDirectory(prefix="larc-test-compile-cache-")
-os.environ["LARC_COMPILE_CACHE"] = str(Path(_CACHE.name) / "jax")
+_WHERE = os.environ.get("LARC_TEST_COMPILE_CACHE", "")
+if _WHERE == "tmp":
+    _TMP = tempfile.TemporaryDirectory(prefix="larc-test-compile-cache-")
+    _WHERE = _TMP.name
+if not _WHERE:
+    from larc_jax.compilation import default_cache_dir
+
+    _WHERE = str(default_cache_dir().parent / "tests")
+os.environ["LARC_COMPILE_CACHE"] = _WHERE
+
+
+def pytest_configure(config):
+    from larc_jax.compilation import enable_compile_cache
+
+    enable_compile_cache(os.environ["LARC_COMPILE_CACHE"])
 
 
 @pytest.fixture(scope="session")

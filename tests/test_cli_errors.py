@@ -438,6 +438,7 @@ def test_help_still_exits_0(capsys):
 SUBPROCESS_CASES = ["position-nan", "directory", "margin-nan", "scene-box-inverted", "binary", "robot-urdf-number"]
 
 
+@pytest.mark.slow
 def test_subprocess_bad_inputs_one_line(tmp_path):
     env = dict(os.environ)
     env.setdefault("LARC_PIPER_DESCRIPTION", str(ROOT.parent / "shared" / "robots" / "piper_description"))
@@ -639,6 +640,7 @@ def _run_and_check(tmp: Path, argv: list[str], capsys, fuzzing: bool = True) -> 
     return rc
 
 
+@pytest.mark.slow
 @FUZZ
 @given(data=st.data())
 def test_fuzz_trajectory_and_scene(data, capsys):
@@ -671,6 +673,7 @@ def test_fuzz_trajectory_and_scene(data, capsys):
                              "--max-depth", "3", *args], capsys)
 
 
+@pytest.mark.slow
 @settings(FUZZ, max_examples=max(10, FUZZ.max_examples // 5))
 @given(data=st.data())
 def test_fuzz_robot_file(data, capsys):

@@ -85,6 +85,7 @@ def _triangles_hit_box(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
     return bool((~sep).any())
 
 
+@pytest.mark.slow
 def test_fcl_agrees_with_independent_check(model, robot):
     """FCL mesh-vs-box agrees with an exact NumPy triangle/box separating-axis test on random
     boxes near random poses; and a mesh vertex inside a box always means a hit."""

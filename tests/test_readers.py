@@ -377,6 +377,7 @@ def test_trajectory_from_msg_unwraps_robot_trajectory():
 # --------------------------------------------------------------------------------------------
 # Command line (in-process)
 
+@pytest.mark.slow
 def test_cli_formats_and_exit_codes(tmp_path, capsys):
     from larc_jax.cli import main
 

@@ -47,6 +47,7 @@ def test_readme_has_command_line_examples():
         assert needle in text, needle
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("line,block", SH_BLOCKS, ids=[f"README.md:{n}" for n, _ in SH_BLOCKS])
 def test_readme_sh_example_runs(tmp_path, line, block):
     shutil.copytree(ROOT / "configs", tmp_path / "configs")
