@@ -280,4 +280,10 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from larc_jax.errors import LarcInputError
+
+    try:
+        sys.exit(main())
+    except LarcInputError as exc:  # e.g. PIPER not found: one line, not a traceback
+        print(f"stageB: error: {exc}", file=sys.stderr)
+        sys.exit(2)
