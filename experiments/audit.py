@@ -9,33 +9,35 @@ recorded positions). Scene collision (any link mesh intersecting any box) and se
 *sampled-clear* when no scene collision is detected at those states; this cannot exclude
 collisions between audit states.
 
+Stage B's audit stage is :func:`audit_stage` (one row per trajectory in ``audit/audit.csv``,
+columns :data:`experiments.common.AUDIT_FIELDS`, rewritten atomically after every finished
+trajectory; a row is reused while its key — a hash of the trajectory file, the scene file, the
+allowed pairs, the audit rate and the audit code — still matches). The table holds no wall
+times, so auditing the same inputs twice writes the same bytes.
+
 ``python -m experiments.audit --trajectories DIR [--out audit.csv]`` audits every
-``<scene>/*.yaml`` under DIR (the scene is the folder name, its file from the protocol config)
-with 2 worker processes.
+``<scene>/*.yaml`` under DIR (the scene is the folder name, its file from the protocol) with 2
+worker processes, into a table of the same schema.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import multiprocessing as mp
 import time
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from experiments.common import AUDIT_FIELDS, CONFIG_PATH, TRAJ_RE, load_config, read_csv, resolve, scene_paths, \
+    write_csv
 
-__all__ = ["audit_times", "audit_trajectory", "audit_dataset", "dataset_items", "main"]
+__all__ = ["audit_times", "audit_trajectory", "audit_stage", "audit_dataset", "dataset_items", "init_worker",
+           "audit_file_in_worker", "audit_key", "audit_inputs", "CODE", "main"]
 
-AUDIT_FIELDS = [
-    "trajectory_id", "scene", "variant", "path", "duration_s", "n_waypoints", "audit_states",
-    "audit_collision", "scene_collision_states", "first_collision_time", "first_contact",
-    "self_collision", "self_collision_states", "first_self_collision_time", "first_self_contact",
-    "audit_time_s",
-]
+CODE = ("experiments.audit",)
+"""Modules whose import closure is the audit's code (part of every row's key)."""
 
 
 def audit_times(t: np.ndarray, hz: float) -> np.ndarray:
@@ -51,18 +53,17 @@ def audit_trajectory(traj, boxes, collision_model, hz: float = 250.0, allowed_pa
     """Audit one trajectory (a :class:`larc_jax.trajectory.Trajectory` in the robot's joint
     order) against ``boxes`` (anything :func:`experiments.collision.scene_boxes` accepts).
 
-    Returns {audit_states, audit_collision (scene, bool), self_collision (bool),
-    first_collision_time (s from t[0] or None), first_self_collision_time, counts of colliding
-    states, the first contacts}.
+    Returns the audit columns of :data:`~experiments.common.AUDIT_FIELDS` (without ``traj_id``,
+    ``scene``, ``key``): ``audit_states``, ``audit_collision`` (scene, bool),
+    ``audit_collision_states``, ``first_collision_t`` (s from t[0], or None), ``collision_contacts``
+    (first ``link~box``), and the same for self-collision.
     """
     from scipy.interpolate import CubicHermiteSpline
 
-    from experiments.collision import scene_boxes
+    from experiments.collision import normalise_pairs, scene_boxes
 
-    t0 = time.perf_counter()
     boxes = scene_boxes(boxes)
-    allowed = allowed_pairs if isinstance(allowed_pairs, frozenset) else frozenset(
-        __import__("experiments.collision", fromlist=["normalise_pairs"]).normalise_pairs(allowed_pairs or ()))
+    allowed = allowed_pairs if isinstance(allowed_pairs, frozenset) else normalise_pairs(allowed_pairs or ())
     t = np.asarray(traj.t, dtype=np.float64)
     ts = audit_times(t, hz)
     Q = CubicHermiteSpline(t, traj.q, traj.qd, axis=0)(ts)
@@ -74,64 +75,37 @@ def audit_trajectory(traj, boxes, collision_model, hz: float = 250.0, allowed_pa
     for k, q in enumerate(Q):
         m.set_configuration(q)
         if len(boxes):
-            hits = m._scene_hits(boxes)
+            hits = m.scene_hits(boxes)
             if hits:
                 scene_hit[k] = True
-                if not first_contact:
-                    first_contact = f"{hits[0][0]}~{hits[0][1]}"
-        sh = m._self_hits(allowed)
+                first_contact = first_contact or f"{hits[0][0]}~{hits[0][1]}"
+        sh = m.self_hits(allowed)
         if sh:
             self_hit[k] = True
-            if not first_self:
-                first_self = f"{sh[0][0]}~{sh[0][1]}"
-    first = float(ts[np.argmax(scene_hit)] - t[0]) if scene_hit.any() else None
-    first_s = float(ts[np.argmax(self_hit)] - t[0]) if self_hit.any() else None
+            first_self = first_self or f"{sh[0][0]}~{sh[0][1]}"
     return {
         "audit_states": int(len(ts)),
         "audit_collision": bool(scene_hit.any()),
-        "scene_collision_states": int(scene_hit.sum()),
-        "first_collision_time": first,
-        "first_contact": first_contact,
+        "audit_collision_states": int(scene_hit.sum()),
+        "first_collision_t": float(ts[np.argmax(scene_hit)] - t[0]) if scene_hit.any() else None,
+        "collision_contacts": first_contact,
         "self_collision": bool(self_hit.any()),
         "self_collision_states": int(self_hit.sum()),
-        "first_self_collision_time": first_s,
-        "first_self_contact": first_self,
-        "duration_s": float(t[-1] - t[0]),
-        "n_waypoints": int(len(t)),
-        "audit_time_s": time.perf_counter() - t0,
+        "first_self_collision_t": float(ts[np.argmax(self_hit)] - t[0]) if self_hit.any() else None,
+        "self_contacts": first_self,
     }
 
 
 # ----------------------------------------------------------------------------------------------
-# Datasets
+# Worker processes (the FCL model is built once per process; FCL objects cannot be pickled)
 # ----------------------------------------------------------------------------------------------
-
-
-def dataset_items(traj_root: str | Path, config: dict | None = None, scenes: Sequence[str] | None = None,
-                  root: Path = ROOT) -> list[dict]:
-    """Items {path, scene, scene_file, variant, trajectory_id} for every ``<scene>/*.yaml`` under
-    ``traj_root``; scene files from the protocol config."""
-    from experiments.generate import DEFAULT_CONFIG, _resolve, load_config
-
-    config = config if config is not None else load_config(DEFAULT_CONFIG)
-    traj_root = Path(traj_root)
-    items = []
-    for scene in (scenes or list(config["scenes"])):
-        folder = traj_root / scene
-        if not folder.is_dir():
-            continue
-        scene_file = str(_resolve(config["scenes"][scene]["file"], root))
-        for p in sorted(folder.glob("*.yaml")):
-            variant = next((v for v in ("ompl_planned", "direct_smoothstep") if p.stem.endswith(v)), "")
-            items.append({"path": str(p), "scene": scene, "scene_file": scene_file,
-                          "variant": variant, "trajectory_id": p.stem})
-    return items
 
 
 _W: dict = {}
 
 
-def _init_worker(allowed_path: str, hz: float):
+def init_worker(allowed_path: str, hz: float):
+    """Set up an audit process: the FCL model, the allowed pairs, the rate."""
     from experiments.collision import CollisionModel
     from experiments.self_collision import load_allowed_pairs
 
@@ -142,72 +116,140 @@ def _init_worker(allowed_path: str, hz: float):
 
 
 def audit_file_in_worker(path: str, scene_file: str) -> dict:
-    """Audit one trajectory file in a process set up by :func:`_init_worker` (the FCL model
-    is built once per process, scene boxes are cached per scene file)."""
+    """Audit one trajectory file in a process set up by :func:`init_worker` (scene boxes are
+    cached per scene file)."""
     from experiments.collision import SceneBoxes
     from larc_jax.trajectory_files import read_trajectory
 
     model = _W["model"]
     boxes = _W["boxes"].get(scene_file)
     if boxes is None:
-        boxes = _W["boxes"][scene_file] = SceneBoxes.from_file(scene_file)
+        boxes = _W["boxes"][scene_file] = SceneBoxes.from_file(scene_file, frame=model.robot.link_names[0])
     traj = read_trajectory(path, model.robot)
     return audit_trajectory(traj, boxes, model, _W["hz"], _W["allowed"])
 
 
-def _audit_item(item: dict) -> dict:
-    res = audit_file_in_worker(item["path"], item["scene_file"])
-    return {**{k: item[k] for k in ("trajectory_id", "scene", "variant", "path")}, **res}
+def _audit_job(job: dict) -> dict:
+    """One row of :data:`AUDIT_FIELDS` for a job {traj_id, scene, path, scene_path, key}."""
+    row = dict(traj_id=job["traj_id"], scene=job["scene"], key=job.get("key", ""))
+    row.update(audit_file_in_worker(job["path"], job["scene_path"]))
+    return row
 
 
-def audit_dataset(items: Iterable[dict], *, hz: float = 250.0, allowed_path: str | Path | None = None,
-                  workers: int = 2, progress: bool = True) -> list[dict]:
-    """Audit many trajectories (items from :func:`dataset_items`: path, scene_file, ...) in
-    ``workers`` processes; results in the order of ``items``."""
-    from experiments.self_collision import DEFAULT_PATH
-
-    items = list(items)
-    allowed_path = str(allowed_path or DEFAULT_PATH)
+def _run_jobs(jobs: Sequence[dict], allowed_path: str, hz: float, workers: int,
+              on_row: Callable[[dict], None], progress: bool = True) -> None:
+    """Audit ``jobs`` in ``workers`` processes, calling ``on_row`` with each finished row."""
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(items), desc="audit", unit="traj", dynamic_ncols=True)
-    out: list[dict | None] = [None] * len(items)
-    if workers <= 1:
-        _init_worker(allowed_path, hz)
-        for k, it in enumerate(items):
-            out[k] = _audit_item(it)
-            if bar is not None:
-                bar.update(1)
-    else:
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(allowed_path, hz)) as pool:
-            for k, res in enumerate(pool.imap(_audit_item, items, chunksize=1)):
-                out[k] = res
+        bar = tqdm(total=len(jobs), desc="audit", unit="traj", dynamic_ncols=True)
+    if workers > 1 and len(jobs) > 1:
+        with mp.get_context("spawn").Pool(workers, initializer=init_worker, initargs=(allowed_path, hz)) as pool:
+            for row in pool.imap_unordered(_audit_job, jobs):
+                on_row(row)
                 if bar is not None:
                     bar.update(1)
+    else:
+        init_worker(allowed_path, hz)
+        for j in jobs:
+            on_row(_audit_job(j))
+            if bar is not None:
+                bar.update(1)
     if bar is not None:
         bar.close()
-    return out  # type: ignore[return-value]
 
 
-def results_csv(results: Sequence[dict]) -> str:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=AUDIT_FIELDS, lineterminator="\n", extrasaction="ignore")
-    w.writeheader()
-    for r in results:
-        w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in AUDIT_FIELDS})
-    return buf.getvalue()
+# ----------------------------------------------------------------------------------------------
+# Stage B's audit stage
+# ----------------------------------------------------------------------------------------------
+
+
+def audit_inputs(config: dict) -> list[Path]:
+    """The files every audit row depends on besides its trajectory and scene: the allowed pairs,
+    the URDF and its collision meshes."""
+    from experiments.collision import geometry_files
+    from larc_jax.urdf import load_robot
+
+    return [resolve(config["allowed_collisions"]), *geometry_files(load_robot())]
+
+
+def audit_key(traj_path: Path, scene_path: Path, config: dict, inputs: Sequence[Path]) -> str:
+    """Hash of what one trajectory's audit row depends on (its reuse key); ``inputs`` from
+    :func:`audit_inputs`."""
+    from experiments.fingerprints import fingerprint
+
+    return fingerprint([traj_path, scene_path, *inputs], dict(audit_hz=config["audit_hz"]), code=CODE)[:20]
+
+
+def audit_stage(layout, config: dict, workers: int, force: bool) -> dict:
+    """Audit every trajectory of the dataset into ``layout.audit_csv`` (module docstring)."""
+    from experiments.common import dataset_index
+
+    spaths = scene_paths(config)
+    inputs = audit_inputs(config)
+    jobs = [dict(traj_id=r["traj_id"], scene=r["scene"], path=str(r["path"]), scene_path=str(spaths[r["scene"]]),
+                 key=audit_key(r["path"], spaths[r["scene"]], config, inputs))
+            for r in dataset_index(layout, config)]
+    cached = {} if force else {r["traj_id"]: r for r in read_csv(layout.audit_csv)}
+    rows = {j["traj_id"]: cached[j["traj_id"]] for j in jobs
+            if j["traj_id"] in cached and cached[j["traj_id"]].get("key") == j["key"]}
+    todo = [j for j in jobs if j["traj_id"] not in rows]
+    print(f"[stageB] audit: {len(rows)} cached, {len(todo)} to audit at {config['audit_hz']} Hz "
+          f"+ waypoints ({workers} workers)", flush=True)
+
+    def flush():
+        write_csv(layout.audit_csv, [rows[j["traj_id"]] for j in jobs if j["traj_id"] in rows], AUDIT_FIELDS)
+
+    def on_row(row):
+        rows[row["traj_id"]] = row
+        flush()
+
+    flush()
+    # Longest first so the workers finish together.
+    todo.sort(key=lambda j: -Path(j["path"]).stat().st_size)
+    t0 = time.perf_counter()
+    if todo:
+        _run_jobs(todo, str(resolve(config["allowed_collisions"])), float(config["audit_hz"]), workers, on_row)
+    flush()
+    return dict(trajectories=len(rows), audited_now=len(todo), audit_s=round(time.perf_counter() - t0, 1))
+
+
+# ----------------------------------------------------------------------------------------------
+# Stand-alone use
+# ----------------------------------------------------------------------------------------------
+
+
+def dataset_items(traj_root: str | Path, config: dict | None = None, scenes: Sequence[str] | None = None) -> list[dict]:
+    """Jobs {traj_id, scene, path, scene_path} for every ``<scene>/*.yaml`` under ``traj_root``;
+    scene files from the protocol (default ``configs/stageB.yaml``)."""
+    config = load_config(CONFIG_PATH) if config is None else config
+    traj_root = Path(traj_root)
+    spaths = scene_paths(config)
+    items = []
+    for scene in (scenes or list(spaths)):
+        for p in sorted((traj_root / scene).glob("*.yaml")):
+            items.append({"traj_id": p.stem, "scene": scene, "path": str(p), "scene_path": str(spaths[scene])})
+    return items
+
+
+def audit_dataset(items: Iterable[dict], *, hz: float, allowed_path: str | Path | None = None, workers: int = 2,
+                  progress: bool = True) -> list[dict]:
+    """Audit many trajectories (jobs from :func:`dataset_items`) in ``workers`` processes; rows
+    of :data:`AUDIT_FIELDS` in the order of ``items``. ``allowed_path``: the allowed
+    self-collision pairs (default: the protocol's)."""
+    items = list(items)
+    if allowed_path is None:
+        allowed_path = resolve(load_config(CONFIG_PATH)["allowed_collisions"])
+    out: dict[str, dict] = {}
+    _run_jobs(items, str(allowed_path), hz, workers, lambda row: out.__setitem__(row["traj_id"], row), progress)
+    return [out[it["traj_id"]] for it in items]
 
 
 def main(argv=None) -> int:
-    from experiments.generate import DEFAULT_CONFIG, _resolve, load_config
-    from larc_jax.io import atomic_write_text
-
     ap = argparse.ArgumentParser(description="FCL audit of recorded trajectories (250 Hz + waypoints)")
     ap.add_argument("--trajectories", required=True, help="folder with <scene>/*.yaml")
-    ap.add_argument("--config", default=str(DEFAULT_CONFIG))
+    ap.add_argument("--config", default=str(CONFIG_PATH))
     ap.add_argument("--scenes", nargs="+", default=None)
     ap.add_argument("--out", default=None, help="CSV (default <trajectories>/../audit.csv)")
     ap.add_argument("--workers", type=int, default=2)
@@ -215,14 +257,14 @@ def main(argv=None) -> int:
     config = load_config(args.config)
     items = dataset_items(args.trajectories, config, args.scenes)
     t0 = time.perf_counter()
-    res = audit_dataset(items, hz=float(config["audit_hz"]),
-                        allowed_path=_resolve(config["allowed_collisions"]), workers=args.workers)
+    res = audit_dataset(items, hz=float(config["audit_hz"]), allowed_path=resolve(config["allowed_collisions"]),
+                        workers=args.workers)
     out = Path(args.out) if args.out else Path(args.trajectories).parent / "audit.csv"
-    atomic_write_text(out, results_csv(res))
+    write_csv(out, res, AUDIT_FIELDS)
     n_states = sum(r["audit_states"] for r in res)
     print(f"audited {len(res)} trajectories, {n_states} states in {time.perf_counter() - t0:.1f} s -> {out}")
     for variant in ("ompl_planned", "direct_smoothstep"):
-        sub = [r for r in res if r["variant"] == variant]
+        sub = [r for r in res if (m := TRAJ_RE.match(r["traj_id"])) and m["variant"] == variant]
         print(f"  {variant}: {sum(r['audit_collision'] for r in sub)}/{len(sub)} scene collisions, "
               f"{sum(r['self_collision'] for r in sub)} self-collisions")
     return 0

@@ -13,8 +13,9 @@ URDF (not the capsule enclosures that LARC certifies with), as MoveIt's FCL plug
 * Self-collision is checked for every pair of links with geometry that is not an allowed pair
   (see :mod:`experiments.self_collision`).
 
-Scenes are YAML files ``{frame: base_link, boxes: [{name, min: [x,y,z], max: [x,y,z]}]}`` in the
-robot base frame, metres; :func:`load_scene_boxes` reads them.
+Geometry comes from the library, so the audit and the capsule fit see the same shapes: scenes
+are read by :func:`larc_jax.scene.read_scene` (YAML or MoveIt ``.scene``, base frame, metres) and
+meshes by :func:`larc_jax.enclosure.meshes.link_collisions` (COLLADA units and URDF scale applied).
 """
 
 from __future__ import annotations
@@ -24,53 +25,19 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
-import yaml
 
 __all__ = [
     "CollisionModel",
     "SceneBoxes",
-    "load_scene_boxes",
     "scene_boxes",
     "normalise_pairs",
+    "geometry_files",
 ]
 
 
 # ----------------------------------------------------------------------------------------------
 # Scenes
 # ----------------------------------------------------------------------------------------------
-
-
-def load_scene_boxes(path: str | Path) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
-    """Read a scene YAML file → ``(names, lo (B, 3), hi (B, 3))`` in the base frame, metres.
-
-    An empty or missing ``boxes`` list gives B = 0. Raises ``ValueError`` naming the file and
-    the box for malformed entries.
-    """
-    path = Path(path)
-    doc = yaml.safe_load(path.read_text())
-    if doc is None:
-        doc = {}
-    if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected a mapping with 'frame' and 'boxes'")
-    frame = doc.get("frame", "base_link")
-    if frame != "base_link":
-        raise ValueError(f"{path}: frame '{frame}' is not base_link")
-    boxes = doc.get("boxes") or []
-    names, lo, hi = [], [], []
-    for k, b in enumerate(boxes):
-        try:
-            a = np.asarray(b["min"], dtype=np.float64)
-            c = np.asarray(b["max"], dtype=np.float64)
-        except (KeyError, TypeError, ValueError):
-            raise ValueError(f"{path}: boxes[{k}] needs numeric 'min' and 'max' lists") from None
-        if a.shape != (3,) or c.shape != (3,) or not (np.isfinite(a).all() and np.isfinite(c).all()):
-            raise ValueError(f"{path}: boxes[{k}] min/max must be 3 finite numbers")
-        if (a > c).any():
-            raise ValueError(f"{path}: boxes[{k}] has min > max")
-        names.append(str(b.get("name", f"box{k}")))
-        lo.append(a)
-        hi.append(c)
-    return tuple(names), np.array(lo).reshape(-1, 3), np.array(hi).reshape(-1, 3)
 
 
 class SceneBoxes:
@@ -95,9 +62,17 @@ class SceneBoxes:
         return len(self.objects)
 
     @classmethod
-    def from_file(cls, path: str | Path) -> "SceneBoxes":
-        names, lo, hi = load_scene_boxes(path)
-        return cls(lo, hi, names)
+    def from_scene(cls, scene) -> "SceneBoxes":
+        """The boxes of a :class:`larc_jax.scene.Scene`."""
+        return cls(scene.lo, scene.hi, scene.box_names or None)
+
+    @classmethod
+    def from_file(cls, path: str | Path, frame: str = "base_link") -> "SceneBoxes":
+        """The boxes of a scene file (:func:`larc_jax.scene.read_scene`: YAML or MoveIt
+        ``.scene``; its frame must be ``frame``, the robot's root link)."""
+        from larc_jax.scene import read_scene
+
+        return cls.from_scene(read_scene(path, frame=frame))
 
 
 def scene_boxes(boxes) -> SceneBoxes:
@@ -134,40 +109,42 @@ def normalise_pairs(pairs: Iterable) -> frozenset:
 # ----------------------------------------------------------------------------------------------
 
 
-def _link_geometries(robot, link: str, model=None):
-    """(geometry, T_link_geometry, trimesh or None) for each collision element of ``link``."""
+def geometry_files(robot) -> list[Path]:
+    """The URDF and every mesh file of the robot's collision geometry: the data an FCL model of
+    ``robot`` is built from (for fingerprints)."""
+    from larc_jax.enclosure.meshes import robot_urdf_model
+    from larc_jax.urdf import resolve_uri
+
+    model = robot_urdf_model(robot)
+    urdf = Path(robot.urdf_path)
+    files = {urdf}
+    for link in robot.link_names:
+        for col in model.link_map[link].collisions:
+            if col.geometry is not None and col.geometry.mesh is not None:
+                files.add(resolve_uri(col.geometry.mesh.filename, urdf, dict(robot.package_dirs)))
+    return sorted(files)
+
+
+def _fcl_geometry(robot, link: str, geometry, mesh):
+    """An FCL geometry for one collision element (see
+    :func:`larc_jax.enclosure.meshes.link_collisions`): a BVH of the mesh triangles, or the
+    FCL primitive."""
     import fcl
-    import trimesh
 
-    from larc_jax.urdf import package_dirs_for, resolve_uri, load_urdf_model
-
-    if model is None:
-        model = load_urdf_model(robot.urdf_path, dict(robot.package_dirs))
-    dirs = package_dirs_for(Path(robot.urdf_path), dict(robot.package_dirs))
-    out = []
-    for col in model.link_map[link].collisions:
-        origin = np.asarray(col.origin if col.origin is not None else np.eye(4), dtype=np.float64)
-        g = col.geometry
-        if g.mesh is not None:
-            path = resolve_uri(g.mesh.filename, Path(robot.urdf_path), dirs)
-            mesh = trimesh.load(str(path), force="mesh")
-            scale = np.asarray(g.mesh.scale if g.mesh.scale is not None else 1.0, dtype=np.float64)
-            verts = np.asarray(mesh.vertices, dtype=np.float64) * scale
-            faces = np.asarray(mesh.faces, dtype=np.int32)
-            bvh = fcl.BVHModel()
-            bvh.beginModel(len(verts), len(faces))
-            bvh.addSubModel(verts, faces)
-            bvh.endModel()
-            out.append((bvh, origin, trimesh.Trimesh(verts, faces, process=False)))
-        elif g.box is not None:
-            out.append((fcl.Box(*np.asarray(g.box.size, float)), origin, None))
-        elif g.cylinder is not None:
-            out.append((fcl.Cylinder(float(g.cylinder.radius), float(g.cylinder.length)), origin, None))
-        elif g.sphere is not None:
-            out.append((fcl.Sphere(float(g.sphere.radius)), origin, None))
-        else:
-            raise ValueError(f"{robot.urdf_path}: link '{link}' has an unsupported collision geometry")
-    return out
+    if mesh is not None:
+        verts, faces = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int32)
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(verts), len(faces))
+        bvh.addSubModel(verts, faces)
+        bvh.endModel()
+        return bvh
+    if geometry.box is not None:
+        return fcl.Box(*np.asarray(geometry.box.size, float))
+    if geometry.cylinder is not None:
+        return fcl.Cylinder(float(geometry.cylinder.radius), float(geometry.cylinder.length))
+    if geometry.sphere is not None:
+        return fcl.Sphere(float(geometry.sphere.radius))
+    raise ValueError(f"{robot.urdf_path}: link '{link}' has an unsupported collision geometry")
 
 
 class CollisionModel:
@@ -179,24 +156,27 @@ class CollisionModel:
 
     def __init__(self, robot=None):
         import fcl
+        import trimesh
 
-        from larc_jax.urdf import load_robot, load_urdf_model
+        from larc_jax.enclosure.meshes import link_collisions
+        from larc_jax.urdf import load_robot
 
         self._fcl = fcl
         self.robot = robot if robot is not None else load_robot()
-        model = load_urdf_model(self.robot.urdf_path, dict(self.robot.package_dirs))
         self.link_names = tuple(self.robot.link_names)
         self.objects = []  # fcl.CollisionObject per collision element
         self.object_link = []  # link index of each object
         self.object_origin = []  # T_link_geometry of each object
         self.meshes = {}  # link name -> list of trimesh (link frame) for drawing / tests
         for li, link in enumerate(self.link_names):
-            for geom, origin, mesh in _link_geometries(self.robot, link, model):
+            for origin, geometry, mesh in link_collisions(self.robot, link):
+                geom = _fcl_geometry(self.robot, link, geometry, mesh)
                 self.objects.append(fcl.CollisionObject(geom, fcl.Transform()))
                 self.object_link.append(li)
                 self.object_origin.append(origin)
                 if mesh is not None:
-                    self.meshes.setdefault(link, []).append(mesh.copy().apply_transform(origin))
+                    tm = trimesh.Trimesh(np.asarray(mesh[0]), np.asarray(mesh[1]), process=False)
+                    self.meshes.setdefault(link, []).append(tm.apply_transform(origin))
         self.object_link = np.asarray(self.object_link, dtype=int)
         self.object_origin = np.asarray(self.object_origin, dtype=np.float64).reshape(-1, 4, 4)
         self.links_with_geometry = tuple(
@@ -226,9 +206,11 @@ class CollisionModel:
         res = self._fcl.CollisionResult()
         return self._fcl.collide(o1, o2, self._request, res) > 0
 
-    # -- queries (at the configuration last set) ----------------------------------------------
+    # -- queries at the configuration last set --------------------------------------------------
 
-    def _scene_hits(self, boxes: SceneBoxes, first_only: bool = True) -> list[tuple[str, str]]:
+    def scene_hits(self, boxes: SceneBoxes, first_only: bool = True) -> list[tuple[str, str]]:
+        """(link, box) pairs in contact at the configuration last set (the first one only, by
+        default)."""
         hits = []
         for k, obj in enumerate(self.objects):
             for b, box in enumerate(boxes.objects):
@@ -255,7 +237,9 @@ class CollisionModel:
             self._last_allowed = (allowed_pairs, pairs)
         return pairs
 
-    def _self_hits(self, allowed_pairs, first_only: bool = True) -> list[tuple[str, str]]:
+    def self_hits(self, allowed_pairs, first_only: bool = True) -> list[tuple[str, str]]:
+        """Link pairs not in ``allowed_pairs`` in contact at the configuration last set (the
+        first one only, by default)."""
         hits = []
         for i, j in self._pairs_to_check(allowed_pairs):
             if self._collide(self.objects[i], self.objects[j]):
@@ -272,23 +256,23 @@ class CollisionModel:
         if len(boxes) == 0:
             return False
         self.set_configuration(q)
-        return bool(self._scene_hits(boxes))
+        return bool(self.scene_hits(boxes))
 
     def scene_contacts(self, q, boxes) -> list[tuple[str, str]]:
         """All (link, box) pairs in contact at ``q``."""
         boxes = scene_boxes(boxes)
         self.set_configuration(q)
-        return self._scene_hits(boxes, first_only=False)
+        return self.scene_hits(boxes, first_only=False)
 
     def self_collision(self, q, allowed_pairs=()) -> bool:
         """True if any pair of links not in ``allowed_pairs`` intersects at ``q``."""
         self.set_configuration(q)
-        return bool(self._self_hits(allowed_pairs))
+        return bool(self.self_hits(allowed_pairs))
 
     def self_contacts(self, q, allowed_pairs=()) -> list[tuple[str, str]]:
         """All link pairs (not allowed) in contact at ``q``."""
         self.set_configuration(q)
-        return self._self_hits(allowed_pairs, first_only=False)
+        return self.self_hits(allowed_pairs, first_only=False)
 
     def link_pair_contacts(self, q, pairs: Sequence[tuple[int, int]]) -> np.ndarray:
         """(len(pairs),) bool: contact of each (link index, link index) pair at ``q``."""
@@ -308,9 +292,9 @@ class CollisionModel:
         """No scene collision and no disallowed self-collision at ``q`` (MoveIt's validity)."""
         boxes = scene_boxes(boxes)
         self.set_configuration(q)
-        if len(boxes) and self._scene_hits(boxes):
+        if len(boxes) and self.scene_hits(boxes):
             return False
-        return not self._self_hits(allowed_pairs)
+        return not self.self_hits(allowed_pairs)
 
     def min_distance(self, q, boxes) -> float:
         """Smallest FCL distance between any link geometry and any box at ``q`` (m; <= 0 in
@@ -335,9 +319,9 @@ class CollisionModel:
         out = np.zeros(len(Q), dtype=bool)
         for k, q in enumerate(Q):
             self.set_configuration(q)
-            hit = bool(len(boxes)) and bool(self._scene_hits(boxes))
+            hit = bool(len(boxes)) and bool(self.scene_hits(boxes))
             if not hit and allowed_pairs is not None:
-                hit = bool(self._self_hits(allowed_pairs))
+                hit = bool(self.self_hits(allowed_pairs))
             out[k] = hit
         return out
 
@@ -349,8 +333,8 @@ class CollisionModel:
         selfc = np.zeros(len(Q), dtype=bool)
         for k, q in enumerate(Q):
             self.set_configuration(q)
-            scene[k] = bool(len(boxes)) and bool(self._scene_hits(boxes))
-            selfc[k] = bool(self._self_hits(allowed_pairs))
+            scene[k] = bool(len(boxes)) and bool(self.scene_hits(boxes))
+            selfc[k] = bool(self.self_hits(allowed_pairs))
         return scene, selfc
 
     def world_meshes(self, q) -> dict:

@@ -13,11 +13,15 @@
 * ``scene_replay.png`` — per scene, the trajectory whose LARC evaluation count is closest to the
   scene median (ties: smallest id), in three orthographic views: capsules at t = 0, T/2 and T
   (each capsule projects exactly to a 2-D "stadium": the points within its radius of the
-  projected segment), the gripper-base path (link6 origin), world axes and the obstacle boxes.
-  Poses only: no interval motion inflation.
+  projected segment), the gripper-base path (the origin of the protocol's
+  ``generation.endpoint_point_link``, link7: the point the endpoint regions constrain), world
+  axes, the obstacle boxes, and the mounting plane z = 0 of the base (hatched below: the arm's
+  base stands on it; the open scene has no boxes, and its poses may reach below it). Poses only:
+  no interval motion inflation.
 * ``workspace.png`` — ``workspace_samples`` configurations drawn uniformly within the six
-  joint limits (URDF) from ``workspace_seed``: link6-origin positions in three projections, with
-  the dashed convex hull of each projection as a visual guide (not a reachability bound).
+  joint limits (URDF) from ``workspace_seed``: positions of the same gripper-base point in three
+  projections, with the dashed convex hull of each projection as a visual guide (not a
+  reachability bound).
 """
 
 from __future__ import annotations
@@ -30,12 +34,14 @@ import pandas as pd
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
-__all__ = ["make_figures", "figure_outputs", "FIGURES", "replay_choice"]
+from experiments.common import Layout, dataset_index, scene_label, scene_paths
 
+__all__ = ["make_figures", "figure_outputs", "FIGURES", "CODE", "replay_choice", "point_link"]
+
+CODE = ("experiments.figures",)
+"""Modules whose import closure is the figures stage's code."""
 FIGURES = ("outcomes_vs_audit", "eval_ratio", "runtime_ratio", "results", "frontier_levels",
            "scene_replay", "workspace")
-SCENE_LABELS = {"open": "Open", "easy_window": "Easy window", "medium_window": "Medium window",
-                "easy_shelf": "Easy shelf"}
 VARIANT_STYLE = {"ompl_planned": dict(color="#1f77b4", label="ompl_planned"),
                  "direct_smoothstep": dict(color="#d62728", label="direct_smoothstep")}
 OUTCOME_STYLE = [
@@ -45,10 +51,15 @@ OUTCOME_STYLE = [
     ("certified & audit collision", "#d62728"),
 ]
 POSE_COLORS = {"t = 0": "#1f77b4", "t = T/2": "#9467bd", "t = T": "#2ca02c"}
-GRIPPER_LINK = "link6"
 
 
-def figure_outputs(layout, config=None) -> list[Path]:
+def point_link(config: dict) -> str:
+    """The gripper-base link whose origin the figures trace: the generation's endpoint point
+    (one owner: the protocol's ``generation.endpoint_point_link``)."""
+    return str(config["generation"].get("endpoint_point_link", "link7"))
+
+
+def figure_outputs(layout: Layout) -> list[Path]:
     return [layout.figures_dir / f"{f}.png" for f in FIGURES]
 
 
@@ -72,10 +83,6 @@ def _save(fig, path: Path):
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _label(scene: str) -> str:
-    return SCENE_LABELS.get(scene, scene.replace("_", " ").capitalize())
-
-
 def _log_axis(ax, suffix: str = ""):
     """Log y axis with plain-number tick labels (0.01, 0.1, 1, 10 ...), optional unit suffix."""
     from matplotlib.ticker import FuncFormatter, LogLocator
@@ -92,10 +99,7 @@ def _jitter(n: int, seed: int, width: float = 0.28) -> np.ndarray:
 
 
 def _load(layout, config):
-    from experiments.tables import trajectory_table
-
-    df = pd.read_csv(layout.out / "trajectories.csv") if (layout.out / "trajectories.csv").is_file() \
-        else trajectory_table(layout)
+    df = pd.read_csv(layout.trajectories_csv)
     for c in ("certified_larc", "certified_fine", "certified_coarse", "audit_collision", "self_collision"):
         if df[c].dtype != bool:
             df[c] = df[c].astype(str).str.lower().eq("true")
@@ -129,7 +133,7 @@ def draw_outcomes(ax, df, scenes):
             else:  # too thin for a label inside: write it beside the bar
                 ax.text(x[i] + 0.37, bottom[i] + v / 2, str(v), ha="left", va="center", fontsize=7, color=color)
         bottom += counts[:, k]
-    ax.set_xticks(x, [_label(g) if g != "all" else "All" for g in groups], rotation=20, ha="right")
+    ax.set_xticks(x, [scene_label(g) if g != "all" else "All" for g in groups], rotation=20, ha="right")
     ax.set_ylabel("trajectories")
     from matplotlib.ticker import MaxNLocator
 
@@ -153,7 +157,7 @@ def draw_eval_ratio(ax, df, scenes, fine_n: int):
     ax.axhline(1.0, color="grey", ls=":", lw=1)
     ax.text(-0.55, 1.04, f"fixed-fine ({fine_n} per trajectory)", va="bottom", ha="left", fontsize=7, color="grey")
     _log_axis(ax)
-    ax.set_xticks(range(len(scenes)), [_label(s) for s in scenes], rotation=20, ha="right")
+    ax.set_xticks(range(len(scenes)), [scene_label(s) for s in scenes], rotation=20, ha="right")
     ax.set_xlim(-0.6, len(scenes) - 0.1)
     ax.set_ylabel("LARC / fixed-fine evaluations")
     ax.set_title("(b) Interval-evaluation ratio (bar: pooled)")
@@ -176,7 +180,7 @@ def draw_runtime_ratio(ax, df, scenes):
         ax.text(i + 0.33, med, f"{med:.2f}×", va="center", fontsize=7)
     ax.axhline(1.0, color="grey", ls=":", lw=1)
     _log_axis(ax, "×")
-    ax.set_xticks(range(len(scenes)), [_label(s) for s in scenes], rotation=20, ha="right")
+    ax.set_xticks(range(len(scenes)), [scene_label(s) for s in scenes], rotation=20, ha="right")
     ax.set_xlim(-0.6, len(scenes) - 0.1)
     ax.set_ylabel("fixed-fine / LARC runtime (paired)")
     ax.set_title(f"(c) Paired runtime ratio (overall median {np.median(r):.2f}×)")
@@ -238,21 +242,21 @@ def stadium(p: np.ndarray, q: np.ndarray, r: float, n: int = 24) -> np.ndarray:
 VIEWS = (("top", (0, 1), "x (m)", "y (m)"), ("side", (0, 2), "x (m)", "z (m)"), ("front", (1, 2), "y (m)", "z (m)"))
 
 
-def _replay_data(path, scene_path, robot, caps):
+def _replay_data(path, scene_path, robot, caps, link: str):
+    from larc_jax.enclosure.capsule import capsule_segments_np
     from larc_jax.hermite import evaluate_np
-    from larc_jax.enclosure import capsule_segments_np
     from larc_jax.robot import forward_kinematics_np
     from larc_jax.scene import read_scene
     from larc_jax.trajectory_files import read_trajectory
 
     tr = read_trajectory(path, robot)
-    sc = read_scene(scene_path)
+    sc = read_scene(scene_path, frame=robot.link_names[0])
     T0, T1 = float(tr.t[0]), float(tr.t[-1])
     poses = {}
     for label, t in (("t = 0", T0), ("t = T/2", 0.5 * (T0 + T1)), ("t = T", T1)):
         q, _ = evaluate_np(tr.t, tr.q, tr.qd, t)
         poses[label] = capsule_segments_np(robot, caps, np.asarray(q))
-    li = robot.link_index(GRIPPER_LINK)
+    li = robot.link_index(link)
     ts = np.linspace(T0, T1, 240)
     path_pts = np.array([forward_kinematics_np(robot, np.asarray(evaluate_np(tr.t, tr.q, tr.qd, t)[0]))[li][:3, 3]
                          for t in ts])
@@ -270,7 +274,11 @@ def draw_replay_row(axes, tr, sc, poses, path_pts, caps, title: str):
     blo = np.minimum(lo_r, np.maximum(sc.lo.min(0) if sc.n_boxes else lo_r, lo_r - 0.25)) if sc.n_boxes else lo_r
     bhi = np.maximum(hi_r, np.minimum(sc.hi.max(0) if sc.n_boxes else hi_r, hi_r + 0.25)) if sc.n_boxes else hi_r
     blo, bhi = blo - 0.03, bhi + 0.03
+    blo[2] = min(blo[2], -0.06)  # keep the mounting plane z = 0 and a strip below it in view
     for ax, (name, (i, j), xl, yl) in zip(axes, VIEWS):
+        if j == 2:  # side and front views: the mounting plane of the base, hatched below
+            ax.axhspan(blo[2] - 1.0, 0.0, facecolor="none", edgecolor="#9e9e9e", hatch="////", lw=0, zorder=0)
+            ax.axhline(0.0, color="#616161", lw=1.0, zorder=1)
         for k in range(sc.n_boxes):
             ax.add_patch(Rectangle((sc.lo[k, i], sc.lo[k, j]), sc.hi[k, i] - sc.lo[k, i], sc.hi[k, j] - sc.lo[k, j],
                                    facecolor=(0.55, 0.34, 0.29, 0.12), edgecolor="#5a3a2f", lw=0.9,
@@ -303,8 +311,9 @@ def draw_replay_row(axes, tr, sc, poses, path_pts, caps, title: str):
 def draw_scene_replay(layout, config, df, scenes, robot, caps):
     plt = _plt()
     from matplotlib.lines import Line2D
-    from experiments.stageB import dataset_index, scene_paths
+    from matplotlib.patches import Patch
 
+    link = point_link(config)
     idx = {r["traj_id"]: r for r in dataset_index(layout, config)}
     spaths = scene_paths(config)
     fig = plt.figure(figsize=(11, 3.6 * len(scenes) + 0.6), layout="constrained")
@@ -312,16 +321,18 @@ def draw_scene_replay(layout, config, df, scenes, robot, caps):
     for row, sc_name in enumerate(scenes):
         tid = replay_choice(df, sc_name)
         rec = df[df["traj_id"] == tid].iloc[0]
-        tr, sc, poses, path_pts = _replay_data(idx[tid]["path"], spaths[sc_name], robot, caps)
+        tr, sc, poses, path_pts = _replay_data(idx[tid]["path"], spaths[sc_name], robot, caps, link)
         status = "certified" if rec["certified_larc"] else "uncertified"
         audit = "audit collision" if rec["audit_collision"] else "sampled-clear"
         axes = subfigs[row].subplots(1, 3)
-        draw_replay_row(axes, tr, sc, poses, path_pts, caps, _label(sc_name))
-        subfigs[row].suptitle(f"{_label(sc_name)}: {tid}, T = {tr.duration:.2f} s, {int(rec['evals_larc'])} LARC "
+        draw_replay_row(axes, tr, sc, poses, path_pts, caps, scene_label(sc_name))
+        subfigs[row].suptitle(f"{scene_label(sc_name)}: {tid}, T = {tr.duration:.2f} s, {int(rec['evals_larc'])} LARC "
                               f"evaluations, {status}, {audit}", fontsize=9, fontweight="bold")
     handles = [Line2D([], [], color=c, lw=4, alpha=0.5, label=f"capsules at {k}") for k, c in POSE_COLORS.items()]
-    handles += [Line2D([], [], color="black", lw=1.2, label=f"gripper-base path ({GRIPPER_LINK} origin; o start, x end)"),
-                Line2D([], [], color="#5a3a2f", lw=4, alpha=0.3, label="obstacle boxes (AABB)")]
+    handles += [Line2D([], [], color="black", lw=1.2, label=f"gripper-base path ({link} origin; o start, x end)"),
+                Line2D([], [], color="#5a3a2f", lw=4, alpha=0.3, label="obstacle boxes (AABB)"),
+                Patch(facecolor="none", edgecolor="#9e9e9e", hatch="////",
+                      label="below the base's mounting plane z = 0 (side, front views)")]
     fig.legend(handles=handles, loc="outside lower center", ncol=3, fontsize=8, frameon=False)
     fig.suptitle("Recorded trajectories per scene (LARC evaluation count closest to the scene median; "
                  "poses only, no motion inflation)", fontsize=10)
@@ -334,7 +345,7 @@ def draw_scene_replay(layout, config, df, scenes, robot, caps):
 # ----------------------------------------------------------------------------------------------
 
 
-def workspace_points(robot, n: int, seed: int, link: str = GRIPPER_LINK) -> np.ndarray:
+def workspace_points(robot, n: int, seed: int, link: str) -> np.ndarray:
     """``n`` configurations uniform within the active joints' URDF limits (``seed``) → positions
     of ``link``'s origin in the base frame, (n, 3)."""
     import jax
@@ -355,7 +366,8 @@ def draw_workspace(layout, config, robot):
     from scipy.spatial import ConvexHull
 
     n, seed = int(config.get("workspace_samples", 6000)), int(config.get("workspace_seed", 20270823))
-    P = workspace_points(robot, n, seed)
+    link = point_link(config)
+    P = workspace_points(robot, n, seed, link)
     fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
     for ax, (name, (i, j), xl, yl) in zip(axes, VIEWS):
         ax.scatter(P[:, i], P[:, j], s=1.5, alpha=0.35, color="#1f77b4", linewidths=0)
@@ -370,7 +382,7 @@ def draw_workspace(layout, config, robot):
     h, lab = axes[0].get_legend_handles_labels()
     fig.legend(h, lab, loc="lower center", ncol=2, fontsize=8, frameon=False, bbox_to_anchor=(0.5, -0.02))
     r = np.linalg.norm(P, axis=1)
-    fig.suptitle(f"PIPER workspace: {GRIPPER_LINK} origin for {n} configurations uniform within the six joint "
+    fig.suptitle(f"PIPER workspace: {link} origin for {n} configurations uniform within the six joint "
                  f"limits (seed {seed}); |p| from {r.min():.2f} to {r.max():.2f} m, z from {P[:, 2].min():.2f} "
                  f"to {P[:, 2].max():.2f} m", fontsize=9)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
@@ -385,7 +397,7 @@ def draw_workspace(layout, config, robot):
 
 def make_figures(layout, config: dict) -> dict:
     plt = _plt()
-    from experiments.stageB import _robot_and_capsules
+    from experiments.models import robot_and_capsules
 
     layout.figures_dir.mkdir(parents=True, exist_ok=True)
     df, scenes = _load(layout, config)
@@ -426,7 +438,7 @@ def make_figures(layout, config: dict) -> dict:
     _save(fig, out / "frontier_levels.png")
     plt.close(fig)
 
-    robot, caps = _robot_and_capsules(config)
+    robot, caps = robot_and_capsules(config)
     draw_scene_replay(layout, config, df, scenes, robot, caps)
     draw_workspace(layout, config, robot)
     return dict(figures=len(FIGURES))

@@ -3,7 +3,7 @@
 ``python -m experiments.figures_robot [-o results/figures/piper_capsules.png]``
 
 Meshes are drawn decimated by vertex clustering (4 mm grid) for speed only; capsules are
-drawn semi-transparent from ``configs/piper_capsules.yaml`` (segment ``a..b`` in its link frame,
+drawn semi-transparent from the shipped capsule file (``larc_jax/data/piper_capsules.yaml``) (segment ``a..b`` in its link frame,
 ``radius`` including padding). Orthographic views with equal axis scales.
 """
 
@@ -76,7 +76,7 @@ def draw(out: str | Path = DEFAULT_OUT, capsule_path: str | Path | None = None, 
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from experiments.collision import CollisionModel
-    from larc_jax.enclosure import default_capsule_path, load_capsules
+    from larc_jax.enclosure.robot_file import default_capsule_path, load_capsules
     from larc_jax.io import atomic_write_bytes
     from larc_jax.robot import forward_kinematics_np
 

@@ -3,7 +3,8 @@
 For each scene (``configs/stageB.yaml``), attempt ``k`` is a pure function of the scene's
 generation seed and ``k`` (``numpy.random.default_rng([seed, k])``; OMPL's RNG is reseeded from it
 and the planner budget is a *count* of validity checks, so the result does not depend on the
-machine's speed — the wall-clock limit is only a safety net). An attempt:
+machine's speed or load: there is no wall-clock limit, and the outputs hold no wall times, so
+generating twice writes the same bytes). An attempt:
 
 1. **Endpoints.** Draws the OMPL seed and a coin (swap start/goal), then two configurations
    uniformly within the MoveIt joint limits (``moveit_joint_limits.yaml``, narrower than the
@@ -23,7 +24,9 @@ machine's speed — the wall-clock limit is only a safety net). An attempt:
    fraction of the space's extent, MoveIt's ``longest_valid_segment_fraction``), then
    ``PathSimplifier.simplifyMax`` and MoveIt's post-interpolation (``interpolate`` to
    ``max(minimum_waypoint_count, round(length / (extent / 100)))`` states). No exact solution
-   within the budget (or a failed time parameterisation) → ``planning_failure``.
+   within ``planner_max_validity_checks`` validity checks (an OMPL
+   ``PlannerTerminationCondition`` on that count: the only planner limit), or a failed time
+   parameterisation → ``planning_failure``.
 4. **Timing.** TOPP-RA (``toppra`` 0.6): cubic ``SplineInterpolator`` through the path states
    over their cumulative joint-space arc length, joint velocity and acceleration limits from
    the yaml times the 0.1 scaling factors, ``ParametrizeConstAccel``, zero end velocities.
@@ -46,7 +49,9 @@ spaced waypoints with exact velocities (not checked: it may collide).
 Outputs under ``out_dir``: ``trajectories/<scene>/*.yaml``, ``generation/<scene>_attempts.csv`` and
 the done-marker ``generation/<scene>.done.json`` (both atomic, written when the scene ends: a
 killed run loses no finished scene, and a rerun skips scenes whose marker matches the current
-inputs), and ``attempts.csv`` (all scenes, rewritten atomically whenever a scene finishes).
+inputs: :func:`scene_fingerprint`, which covers the protocol, the scene file, the allowed pairs,
+the URDF and its meshes, and the generator's code), and ``attempts.csv`` (all scenes, rewritten
+atomically whenever a scene finishes).
 
 CLI: ``python -m experiments.generate [--quick] [--scenes ...] [--out DIR] [--workers 2]``.
 """
@@ -54,15 +59,11 @@ CLI: ``python -m experiments.generate [--quick] [--scenes ...] [--out DIR] [--wo
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
-import hashlib
-import io
+import functools
 import json
-import logging
 import math
 import multiprocessing as mp
-import os
 import time
 from pathlib import Path
 from typing import Sequence
@@ -70,21 +71,25 @@ from typing import Sequence
 import numpy as np
 import yaml
 
-ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_CONFIG = ROOT / "configs" / "stageB.yaml"
-GENERATOR_REVISION = "stageB-generate-1"
-VARIANTS = ("ompl_planned", "direct_smoothstep")
-OUTCOMES = ("accepted", "invalid_start", "invalid_goal", "planning_failure", "hermite_recheck_failure")
+from experiments.common import CONFIG_PATH, OUTCOMES, ROOT, csv_text, load_config, read_csv, resolve
+from experiments.planning import hermite_states, plan_path, record, smoothstep_trajectory, time_parameterise
+
+CODE = ("experiments.generate",)
+"""Modules whose import closure is the generator's code (part of every scene's fingerprint)."""
 CSV_FIELDS = [
     "scene", "attempt", "seed", "ompl_seed", "outcome", "detail", "pair", "duration_s",
-    "n_waypoints", "planner_checks", "solve_time_s", "plan_time_s", "path_states", "path_length_rad",
-    "recheck_states", "max_clip_rad", "attempt_time_s", "start", "goal",
+    "n_waypoints", "planner_checks", "path_states", "path_length_rad",
+    "recheck_states", "max_clip_rad", "start", "goal",
 ]
 
 __all__ = [
-    "load_config",
+    "SceneContext",
+    "attempt_endpoints",
     "moveit_limits",
     "generate_scene",
+    "generate_all",
+    "scene_fingerprint",
+    "scene_is_done",
     "smoothstep_trajectory",
     "hermite_states",
     "main",
@@ -94,21 +99,6 @@ __all__ = [
 # ----------------------------------------------------------------------------------------------
 # Configuration
 # ----------------------------------------------------------------------------------------------
-
-
-def load_config(path: str | Path = DEFAULT_CONFIG) -> dict:
-    """Parse the frozen protocol file."""
-    path = Path(path)
-    doc = yaml.safe_load(path.read_text())
-    if not isinstance(doc, dict) or "scenes" not in doc:
-        raise ValueError(f"{path}: expected a mapping with 'scenes'")
-    doc.setdefault("_path", str(path))
-    return doc
-
-
-def _resolve(path: str | Path, root: Path = ROOT) -> Path:
-    p = Path(path)
-    return p if p.is_absolute() else root / p
 
 
 def moveit_limits(robot, path: str | Path | None = None) -> dict:
@@ -143,20 +133,16 @@ def _region(spec) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def _sha(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
 # ----------------------------------------------------------------------------------------------
 # Per-process context
 # ----------------------------------------------------------------------------------------------
 
 
-class _Context:
+class SceneContext:
     """Everything an attempt needs, built once per process and scene."""
 
-    def __init__(self, scene_name: str, config: dict, root: Path = ROOT):
-        from experiments.collision import CollisionModel, SceneBoxes, load_scene_boxes
+    def __init__(self, scene_name: str, config: dict):
+        from experiments.collision import CollisionModel, SceneBoxes
         from experiments.self_collision import load_allowed_pairs
 
         self.scene_name = scene_name
@@ -164,17 +150,17 @@ class _Context:
         self.scene_cfg = config["scenes"][scene_name]
         self.model = CollisionModel()
         self.robot = self.model.robot
-        self.allowed = load_allowed_pairs(_resolve(config["allowed_collisions"], root), self.robot)
-        scene_path = _resolve(self.scene_cfg["file"], root)
+        self.allowed = load_allowed_pairs(resolve(config["allowed_collisions"]), self.robot)
+        scene_path = resolve(self.scene_cfg["file"])
         self.scene_path = scene_path
-        names, lo, hi = load_scene_boxes(scene_path)
+        scene = SceneBoxes.from_file(scene_path, frame=self.robot.link_names[0])
         # MoveIt-style world padding: the planner, the endpoint checks and the recheck see every
         # box grown by this much on each side (the audit sees the true boxes).
         pad = float(config["generation"].get("planning_padding_m", 0.0))
         if not (math.isfinite(pad) and pad >= 0.0):
             raise ValueError(f"generation.planning_padding_m must be a finite number >= 0, got {pad!r}")
         self.padding = pad
-        self.boxes = SceneBoxes(lo - pad, hi + pad, names)
+        self.boxes = SceneBoxes(scene.lo - pad, scene.hi + pad, scene.names)
         self.limits = moveit_limits(self.robot, config.get("joint_limits_file"))
         gen = config["generation"]
         self.gen = gen
@@ -199,7 +185,7 @@ class _Context:
         return forward_kinematics_np(self.robot, q)[self.point_link][:3, 3]
 
 
-def _sample_endpoint(ctx: _Context, rng, region, other_point=None, max_draws: int = 200_000):
+def _sample_endpoint(ctx: SceneContext, rng, region, other_point=None, max_draws: int = 200_000):
     lo, hi = ctx.limits["lo"], ctx.limits["hi"]
     for _ in range(max_draws):
         q = rng.uniform(lo, hi)
@@ -213,7 +199,7 @@ def _sample_endpoint(ctx: _Context, rng, region, other_point=None, max_draws: in
                        f"gripper point in region {region}; fix the endpoints spec")
 
 
-def attempt_endpoints(ctx: _Context, seed: int, attempt: int):
+def attempt_endpoints(ctx: SceneContext, seed: int, attempt: int):
     """(start, goal, ompl_seed) of an attempt: a pure function of (seed, attempt)."""
     rng = np.random.default_rng([int(seed), int(attempt)])
     ompl_seed = int(rng.integers(1, 2**31 - 1))
@@ -223,196 +209,10 @@ def attempt_endpoints(ctx: _Context, seed: int, attempt: int):
     return (qb, qa, ompl_seed) if swap else (qa, qb, ompl_seed)
 
 
-# ----------------------------------------------------------------------------------------------
-# Planning, timing, recording
-# ----------------------------------------------------------------------------------------------
-
-
-def _plan(ctx: _Context, start, goal, ompl_seed: int):
-    """OMPL RRTConnect + simplifyMax + MoveIt interpolation → ((S, n) states or None, info)."""
-    from ompl import base as ob
-    from ompl import geometric as og
-    from ompl import util as ou
-
-    gen = ctx.gen
-    n = ctx.robot.n_joints
-    ou.setLogLevel(ou.LogLevel.LOG_NONE)  # also hides "seed changed after RNG use" (harmless:
-    # every RNG of this attempt is created after the reseed, so sampling is deterministic)
-    ou.RNG.setSeed(int(ompl_seed))
-    space = ob.RealVectorStateSpace(n)
-    bounds = ob.RealVectorBounds(n)
-    for i in range(n):
-        bounds.setLow(i, float(ctx.limits["lo"][i]))
-        bounds.setHigh(i, float(ctx.limits["hi"][i]))
-    space.setBounds(bounds)
-    si = ob.SpaceInformation(space)
-    counter = [0]
-    buf = np.empty(n)
-
-    def is_valid(state) -> bool:
-        counter[0] += 1
-        for i in range(n):
-            buf[i] = state[i]
-        return ctx.valid(buf)
-
-    si.setStateValidityChecker(is_valid)
-    si.setStateValidityCheckingResolution(float(gen["state_validity_resolution"]))
-    si.setup()
-    s = space.allocState()
-    g = space.allocState()
-    for i in range(n):
-        s[i] = float(start[i])
-        g[i] = float(goal[i])
-    pdef = ob.ProblemDefinition(si)
-    pdef.setStartAndGoalStates(s, g)
-    planner = og.RRTConnect(si)
-    planner.setProblemDefinition(pdef)
-    planner.setup()
-    max_checks = int(gen["planner_max_validity_checks"])
-    deadline = time.perf_counter() + float(gen["planner_time_limit_s"])
-    ptc = ob.PlannerTerminationCondition(
-        lambda: counter[0] >= max_checks or time.perf_counter() > deadline
-    )
-    t0 = time.perf_counter()
-    planner.solve(ptc)
-    info = {"planner_checks": counter[0], "solve_time_s": time.perf_counter() - t0,
-            "plan_time_s": time.perf_counter() - t0}
-    if not pdef.hasExactSolution():
-        timed_out = time.perf_counter() > deadline
-        info["detail"] = "planner_time_limit" if timed_out else "planner_check_budget"
-        return None, info
-    path = pdef.getSolutionPath()
-    og.PathSimplifier(si).simplifyMax(path)
-    seg = ctx.extent / 100.0  # MoveIt: max_solution_segment_length = extent / 100
-    count = max(int(gen.get("minimum_waypoint_count", 10)), int(math.floor(0.5 + path.length() / seg)))
-    path.interpolate(count)
-    states = np.array([[path.getState(k)[i] for i in range(n)] for k in range(path.getStateCount())])
-    info["path_length_rad"] = float(path.length())
-    info["plan_time_s"] = time.perf_counter() - t0
-    return states, info
-
-
-def _dedupe(states: np.ndarray) -> np.ndarray:
-    keep = [0]
-    for k in range(1, len(states)):
-        if np.linalg.norm(states[k] - states[keep[-1]]) > 1e-9:
-            keep.append(k)
-    return states[keep]
-
-
-def _time_of_s(jnt, s_values: np.ndarray) -> np.ndarray:
-    """Invert TOPP-RA's piecewise-constant-acceleration s(t) at path positions ``s_values``."""
-    ss, ts, vs, us = jnt._ss, jnt._ts, jnt._velocities, jnt._us
-    out = np.empty(len(s_values))
-    for k, s in enumerate(s_values):
-        i = int(np.clip(np.searchsorted(ss, s, side="right") - 1, 0, len(us) - 1))
-        ds = max(0.0, float(s - ss[i]))
-        v, u = float(vs[i]), float(us[i])
-        if abs(u) < 1e-12:
-            dt = ds / v if v > 0 else 0.0
-        else:
-            disc = max(0.0, v * v + 2.0 * u * ds)
-            dt = (-v + math.sqrt(disc)) / u
-        out[k] = float(np.clip(ts[i] + dt, ts[i], ts[i + 1]))
-    return out
-
-
-def _time_parameterise(ctx: _Context, states: np.ndarray):
-    """TOPP-RA over the (deduplicated) path states → (jnt, t at each state, states); jnt and t
-    are None when TOPP-RA fails."""
-    import toppra as ta
-    import toppra.algorithm as algo
-    import toppra.constraint as constraint
-
-    logging.getLogger("toppra").setLevel(logging.ERROR)
-    states = _dedupe(states)
-    if len(states) < 2:
-        return None, None, states
-    ss = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(states, axis=0), axis=1))])
-    path = ta.SplineInterpolator(ss, states)
-    pc_vel = constraint.JointVelocityConstraint(np.stack([-ctx.vlim, ctx.vlim], axis=1))
-    pc_acc = constraint.JointAccelerationConstraint(np.stack([-ctx.alim, ctx.alim], axis=1))
-    instance = algo.TOPPRA([pc_vel, pc_acc], path, parametrizer="ParametrizeConstAccel")
-    jnt = instance.compute_trajectory()
-    if jnt is None:
-        return None, None, states
-    t_states = _time_of_s(jnt, ss)
-    t_states[0], t_states[-1] = 0.0, float(jnt.duration)
-    return jnt, t_states, states
-
-
-def _round_ns(t: np.ndarray) -> np.ndarray:
-    return np.round(np.asarray(t, dtype=np.float64) * 1e9) / 1e9
-
-
-def _record(ctx: _Context, jnt, t_states: np.ndarray, states: np.ndarray):
-    """Recorded waypoints (t, q, qd) and the largest clip applied to positions."""
-    gen = ctx.gen
-    T = float(jnt.duration)
-    dt = float(gen["record_dt_s"])
-    gap = float(gen.get("record_min_gap_s", 0.02))
-    grid = np.arange(1, int(math.floor(T / dt)) + 1) * dt
-    grid = grid[grid < T - gap]
-    near = np.min(np.abs(grid[:, None] - t_states[None, :]), axis=1) < gap if len(grid) else np.zeros(0, bool)
-    t = np.union1d(t_states, grid[~near])
-    t = _round_ns(t)
-    t = np.unique(t)
-    q = np.asarray(jnt(t), dtype=np.float64)
-    qd = np.asarray(jnt(t, 1), dtype=np.float64)
-    q[0], q[-1] = states[0], states[-1]
-    qd[0] = 0.0
-    qd[-1] = 0.0
-    clipped = np.clip(q, ctx.limits["lo"], ctx.limits["hi"])
-    max_clip = float(np.max(np.abs(clipped - q)))
-    return t, clipped, qd, max_clip
-
-
-def hermite_states(t: np.ndarray, q: np.ndarray, qd: np.ndarray, hz: float,
-                   include_waypoints: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Times and states of the Hermite reconstruction on a ``hz`` grid from t[0] (plus the last
-    time; plus every waypoint time if ``include_waypoints``)."""
-    from scipy.interpolate import CubicHermiteSpline
-
-    t = np.asarray(t, dtype=np.float64)
-    spline = CubicHermiteSpline(t, q, qd, axis=0)
-    n = int(math.floor((t[-1] - t[0]) * hz + 1e-9))
-    ts = t[0] + np.arange(n + 1) / hz
-    ts = ts[ts <= t[-1]]
-    ts = np.union1d(ts, [t[-1]])
-    if include_waypoints:
-        ts = np.union1d(ts, t)
-    states = spline(ts)
-    if include_waypoints:  # exact recorded positions at the waypoints
-        idx = np.searchsorted(ts, t)
-        states[idx] = q
-    return ts, states
-
-
-def smoothstep_trajectory(q0, q1, T: float, n_waypoints: int, joint_names, traj_id: str = ""):
-    """The direct control: q(t) = q0 + (q1 - q0) (3u^2 - 2u^3), u = t / T, exact velocities."""
-    from larc_jax.trajectory import Trajectory
-
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    t = _round_ns(np.linspace(0.0, T, int(n_waypoints)))
-    t[-1] = T
-    u = t / T
-    s = 3 * u**2 - 2 * u**3
-    sd = (6 * u - 6 * u**2) / T
-    q = q0 + np.outer(s, q1 - q0)
-    qd = np.outer(sd, q1 - q0)
-    q[0], q[-1] = q0, q1
-    qd[0] = 0.0
-    qd[-1] = 0.0
-    return Trajectory(t=t, q=q, qd=qd, joint_names=tuple(joint_names), id=traj_id,
-                      source="direct_smoothstep")
-
-
-def run_attempt(ctx: _Context, seed: int, attempt: int):
+def run_attempt(ctx: SceneContext, seed: int, attempt: int):
     """One generation attempt → (CSV row, (planned, start, goal) or None)."""
     from larc_jax.trajectory import Trajectory
 
-    t0 = time.perf_counter()
     start, goal, ompl_seed = attempt_endpoints(ctx, seed, attempt)
     row = {k: "" for k in CSV_FIELDS}
     row.update(scene=ctx.scene_name, attempt=attempt, seed=seed, ompl_seed=ompl_seed,
@@ -422,25 +222,22 @@ def run_attempt(ctx: _Context, seed: int, attempt: int):
     def done(outcome, detail="", result=None):
         row["outcome"] = outcome
         row["detail"] = detail
-        row["attempt_time_s"] = round(time.perf_counter() - t0, 4)
         return row, result
 
     if not ctx.valid(start):
         return done("invalid_start", _contact_detail(ctx, start))
     if not ctx.valid(goal):
         return done("invalid_goal", _contact_detail(ctx, goal))
-    states, info = _plan(ctx, start, goal, ompl_seed)
+    states, info = plan_path(ctx, start, goal, ompl_seed)
     row["planner_checks"] = info["planner_checks"]
-    row["solve_time_s"] = round(info["solve_time_s"], 4)
-    row["plan_time_s"] = round(info["plan_time_s"], 4)
     if states is None:
         return done("planning_failure", info.get("detail", ""))
     row["path_length_rad"] = round(info["path_length_rad"], 6)
-    jnt, t_states, states = _time_parameterise(ctx, states)
+    jnt, t_states, states = time_parameterise(ctx, states)
     row["path_states"] = len(states)
     if jnt is None:
         return done("planning_failure", "toppra_failed")
-    t, q, qd, max_clip = _record(ctx, jnt, t_states, states)
+    t, q, qd, max_clip = record(ctx, jnt, t_states, states)
     row["max_clip_rad"] = f"{max_clip:.3g}"
     row["duration_s"] = round(float(t[-1]), 9)
     row["n_waypoints"] = len(t)
@@ -456,7 +253,7 @@ def run_attempt(ctx: _Context, seed: int, attempt: int):
     return done("accepted", "", (traj, start, goal))
 
 
-def _contact_detail(ctx: _Context, q) -> str:
+def _contact_detail(ctx: SceneContext, q) -> str:
     hits = ctx.model.scene_contacts(q, ctx.boxes) if len(ctx.boxes) else []
     selfh = ctx.model.self_contacts(q, ctx.allowed)
     parts = [f"{a}~{b}" for a, b in hits[:3]] + [f"{a}~{b}" for a, b in selfh[:3]]
@@ -468,34 +265,32 @@ def _contact_detail(ctx: _Context, q) -> str:
 # ----------------------------------------------------------------------------------------------
 
 
-def scene_fingerprint(scene_name: str, config: dict, n_pairs: int, max_attempts: int,
-                      root: Path = ROOT) -> str:
-    """Hash of every input that determines a scene's output (resume check)."""
-    from larc_jax.urdf import piper_urdf_path
+@functools.lru_cache(maxsize=1)
+def _robot_geometry() -> tuple[Path, ...]:
+    from experiments.collision import geometry_files
+    from larc_jax.urdf import load_robot
+
+    return tuple(geometry_files(load_robot()))
+
+
+def scene_fingerprint(scene_name: str, config: dict, n_pairs: int, max_attempts: int) -> str:
+    """Hash of every input that determines a scene's output (resume check): the protocol values
+    the generator reads, the scene file, the allowed pairs, the URDF and its collision meshes,
+    and the generator's code (:mod:`experiments.fingerprints`)."""
+    from experiments.fingerprints import fingerprint
 
     sc = config["scenes"][scene_name]
-    parts = {
-        "revision": GENERATOR_REVISION,
+    params = {
         "scene_cfg": sc,
-        "scene_file": _sha(_resolve(sc["file"], root).read_bytes()),
-        "allowed": _sha(_resolve(config["allowed_collisions"], root).read_bytes()),
-        "urdf": _sha(Path(piper_urdf_path()).read_bytes()),
         "generation": config["generation"],
         "recheck_hz": config["recheck_hz"],
         "scaling": [config.get("velocity_scaling"), config.get("acceleration_scaling")],
+        "joint_limits_file": config.get("joint_limits_file"),
         "n_pairs": n_pairs,
         "max_attempts": max_attempts,
     }
-    return _sha(json.dumps(parts, sort_keys=True, default=str).encode())
-
-
-def _csv_text(rows: Sequence[dict]) -> str:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: r.get(k, "") for k in CSV_FIELDS})
-    return buf.getvalue()
+    files = [resolve(sc["file"]), resolve(config["allowed_collisions"]), *_robot_geometry()]
+    return fingerprint(files, params, code=CODE)
 
 
 def _done_marker(out_dir: Path, scene: str) -> Path:
@@ -519,15 +314,14 @@ def scene_is_done(out_dir: Path, scene: str, fingerprint: str) -> bool:
 
 def generate_scene(
     scene_name: str,
-    config: dict | str | Path = DEFAULT_CONFIG,
-    out_dir: str | Path = ROOT / "results" / "stageB",
+    config: dict | str | Path = CONFIG_PATH,
+    out_dir: str | Path = ROOT / "results" / "stageB" / "dataset",
     n_pairs: int | None = None,
     *,
     max_attempts: int | None = None,
     force: bool = False,
     progress: bool = True,
     position: int = 0,
-    root: Path = ROOT,
 ) -> dict:
     """Generate one scene's pairs (see module docstring). Returns the scene summary (also
     written as the done-marker). Skips the work if a matching done-marker exists."""
@@ -541,14 +335,14 @@ def generate_scene(
     n_pairs = int(n_pairs if n_pairs is not None else config["pairs_per_scene"])
     max_attempts = int(max_attempts if max_attempts is not None else sc.get(
         "max_attempts", config["generation"]["max_attempts_per_scene"]))
-    fp = scene_fingerprint(scene_name, config, n_pairs, max_attempts, root)
+    fp = scene_fingerprint(scene_name, config, n_pairs, max_attempts)
     if not force and scene_is_done(out_dir, scene_name, fp):
         doc = json.loads(_done_marker(out_dir, scene_name).read_text())
         doc["skipped"] = True
         return doc
 
     t_start = time.perf_counter()
-    ctx = _Context(scene_name, config, root)
+    ctx = SceneContext(scene_name, config)
     seed = int(sc["seed"])
     traj_dir = out_dir / "trajectories" / scene_name
     traj_dir.mkdir(parents=True, exist_ok=True)
@@ -598,14 +392,12 @@ def generate_scene(
         "max_attempts": max_attempts,
         "attempt_cap_reached": accepted < n_pairs,
         "outcomes": counts,
-        "elapsed_s": round(time.perf_counter() - t_start, 2),
         "fingerprint": fp,
-        "revision": GENERATOR_REVISION,
         "trajectories": sorted(p.name for p in traj_dir.glob(f"{scene_name}_p*_*.yaml")),
     }
-    atomic_write_text(_scene_csv(out_dir, scene_name), _csv_text(rows))
-    atomic_write_json(marker, summary)
-    return summary
+    atomic_write_text(_scene_csv(out_dir, scene_name), csv_text(rows, CSV_FIELDS))
+    atomic_write_json(marker, summary)  # no wall time in it: the marker is reproducible too
+    return dict(summary, elapsed_s=round(time.perf_counter() - t_start, 2))
 
 
 def write_combined_attempts(out_dir: str | Path, scenes: Sequence[str]) -> Path:
@@ -617,11 +409,10 @@ def write_combined_attempts(out_dir: str | Path, scenes: Sequence[str]) -> Path:
     rows = []
     for s in scenes:
         p = _scene_csv(out_dir, s)
-        if p.is_file() and _done_marker(out_dir, s).is_file():  # finished scenes only
-            with p.open(newline="") as f:
-                rows.extend(csv.DictReader(f))
+        if _done_marker(out_dir, s).is_file():  # finished scenes only
+            rows.extend(read_csv(p))
     path = out_dir / "attempts.csv"
-    atomic_write_text(path, _csv_text(rows))
+    atomic_write_text(path, csv_text(rows, CSV_FIELDS))
     return path
 
 
@@ -661,9 +452,9 @@ def generate_all(config: dict, out_dir: str | Path, scenes: Sequence[str], n_pai
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Stage B trajectory generation (OMPL + TOPP-RA + FCL)")
-    ap.add_argument("--config", default=str(DEFAULT_CONFIG))
-    ap.add_argument("--out", default=None, help="output folder (default results/stageB, "
-                    "or results/stageB_quick with --quick)")
+    ap.add_argument("--config", default=str(CONFIG_PATH))
+    ap.add_argument("--out", default=None, help="output folder (default results/stageB/dataset, "
+                    "or results/stageB_quick/dataset with --quick: where python -m experiments.stageB reads it)")
     ap.add_argument("--scenes", nargs="+", default=None)
     ap.add_argument("--quick", action="store_true", help="2 pairs per scene")
     ap.add_argument("--pairs", type=int, default=None, help="pairs per scene (overrides config)")
@@ -678,7 +469,7 @@ def main(argv=None) -> int:
             ap.error(f"unknown scene '{s}' (config has {list(config['scenes'])})")
     n_pairs = args.pairs if args.pairs is not None else (
         int(config.get("quick_pairs_per_scene", 2)) if args.quick else None)
-    out = Path(args.out) if args.out else ROOT / "results" / ("stageB_quick" if args.quick else "stageB")
+    out = Path(args.out) if args.out else ROOT / "results" / ("stageB_quick" if args.quick else "stageB") / "dataset"
     t0 = time.perf_counter()
     results = generate_all(config, out, scenes, n_pairs, workers=args.workers,
                            max_attempts=args.max_attempts, force=args.force)
@@ -689,7 +480,7 @@ def main(argv=None) -> int:
             print(f"{r['scene']}: ERROR {r['error']}\n{r['traceback']}")
             continue
         print(f"{r['scene']}: {r['n_pairs_accepted']}/{r['n_pairs_requested']} pairs in "
-              f"{r['attempts']} attempts {r['outcomes']} ({r['elapsed_s']} s"
+              f"{r['attempts']} attempts {r['outcomes']} ({r.get('elapsed_s', 0)} s"
               f"{', skipped: already done' if r.get('skipped') else ''})")
     print(f"attempts: {out / 'attempts.csv'}; total {time.perf_counter() - t0:.1f} s")
     return 1 if failed or any(r.get("attempt_cap_reached") for r in results) else 0

@@ -1,5 +1,6 @@
 """Allowed self-collision pairs (the SRDF ``disable_collisions`` list), computed the way MoveIt's
-setup assistant does, and written to ``configs/piper_allowed_collisions.yaml``.
+setup assistant does, and written to ``larc_jax/data/piper_allowed_collisions.yaml`` (package data,
+:mod:`larc_jax.data`).
 
 A link pair is *allowed* (never checked for self-collision) when it is
 
@@ -30,8 +31,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_PATH = ROOT / "configs" / "piper_allowed_collisions.yaml"
+from larc_jax.data import PIPER_ALLOWED_COLLISIONS, data_path
+
+DEFAULT_PATH = data_path(PIPER_ALLOWED_COLLISIONS)
 DEFAULT_SEED = 20270821
 DEFAULT_SAMPLES = 10_000
 ALWAYS_FRACTION = 0.95

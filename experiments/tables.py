@@ -1,7 +1,7 @@
 """Stage B tables (paper Tables II and III and companions) and the must-hold checks.
 
-Reads the stage outputs under ``<out>`` (see :class:`experiments.stageB.Layout`) and writes, each
-as ``.csv`` and ``.md``:
+Computes, from the stage outputs under ``<out>`` (see :class:`experiments.common.Layout`), each
+as a DataFrame (written as ``.csv`` and ``.md``):
 
 * ``trajectories`` — one row per trajectory (decisions and evaluations of the three methods,
   audit, LARC minimum clearance, median paired times, paired speedup);
@@ -14,8 +14,7 @@ as ``.csv`` and ``.md``:
 * ``generation`` — attempt outcomes per scene (failures kept);
 * ``checks`` — the must-hold checks (computed and reported, never asserted here);
 
-and ``README.md`` setting our figures beside the paper's, with notes generated from the data
-and the hand-written "Why they differ" section from ``experiments/stageB_discussion.md``.
+(:mod:`experiments.stageB_report` writes them, with ``README.md``, as the tables stage).
 
 Definitions (paper, "Sampled MoveIt/FCL Audit"): *sampled-clear* = the audit found no
 scene collision at its states; *FCL-detected false-safe* = certified by LARC although the audit
@@ -25,25 +24,20 @@ Self-collision is reported separately (the certificate concerns link-obstacle se
 
 from __future__ import annotations
 
-import platform
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-ROOT = Path(__file__).resolve().parent.parent
-DISCUSSION = ROOT / "experiments" / "stageB_discussion.md"
-"""Hand-written "Why they differ" section of the full run's README (an input of the tables stage)."""
+from experiments.common import METHODS, OUTCOMES, VARIANTS, scene_label
 
-__all__ = ["trajectory_table", "make_tables", "table_outputs", "load_checks", "print_checks",
+__all__ = ["trajectory_table", "overall_table", "per_scene_table", "rejection_by_variant_table",
+           "frontier_tables", "timing_table", "generation_table", "checks_table",
+           "load_checks", "print_checks", "stats", "as_bool", "pct", "median", "to_markdown", "write_table",
            "PAPER", "TABLES"]
 
 TABLES = ("trajectories", "overall", "per_scene", "rejection_by_variant", "frontier_levels",
           "frontier_levels_by_scene", "batch_timing", "generation", "checks")
-SCENE_LABELS = {"open": "Open", "easy_window": "Easy window", "medium_window": "Medium window",
-                "easy_shelf": "Easy shelf"}
-VARIANTS = ("ompl_planned", "direct_smoothstep")
-METHODS = ("larc", "fine", "coarse")
 
 PAPER = dict(
     pairs=80, trajectories=160, certified_larc=112, certified_fine=112, certified_coarse=70,
@@ -61,7 +55,6 @@ PAPER = dict(
     generation=dict(attempts=115, accepted=80, invalid_start=9, invalid_goal=16, planning_failure=6,
                     hermite_recheck_failure=4),
 )
-OUTCOMES = ("accepted", "invalid_start", "invalid_goal", "planning_failure", "hermite_recheck_failure")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -69,7 +62,7 @@ OUTCOMES = ("accepted", "invalid_start", "invalid_goal", "planning_failure", "he
 # ----------------------------------------------------------------------------------------------
 
 
-def _bool(s: pd.Series) -> pd.Series:
+def as_bool(s: pd.Series) -> pd.Series:
     if s.dtype == bool:
         return s
     return s.astype(str).str.strip().str.lower().isin(("true", "1", "yes"))
@@ -97,24 +90,20 @@ def to_markdown(df: pd.DataFrame, title: str | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write(out: Path, name: str, df: pd.DataFrame, title: str):
+def write_table(out: Path, name: str, df: pd.DataFrame, title: str):
     from larc_jax.io import atomic_write_text
 
     atomic_write_text(out / f"{name}.csv", df.to_csv(index=False))
     atomic_write_text(out / f"{name}.md", to_markdown(df, title))
 
 
-def _pct(a: int, b: int) -> str:
+def pct(a: int, b: int) -> str:
     return f"{100.0 * a / b:.1f}%" if b else "—"
 
 
-def _median(x) -> float:
+def median(x) -> float:
     x = pd.to_numeric(pd.Series(x), errors="coerce").dropna()
     return float(np.median(x)) if len(x) else float("nan")
-
-
-def table_outputs(layout) -> list[Path]:
-    return [layout.out / f"{t}.{ext}" for t in TABLES for ext in ("csv", "md")] + [layout.out / "README.md"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -125,7 +114,7 @@ def table_outputs(layout) -> list[Path]:
 def trajectory_table(layout) -> pd.DataFrame:
     """One row per trajectory from the certification, audit and timing outputs."""
     cert = pd.read_csv(layout.cert_results_csv)
-    cert["certified"] = _bool(cert["certified"])
+    cert["certified"] = as_bool(cert["certified"])
     base = cert[cert["method"] == "larc"][["traj_id", "scene", "pair_id", "variant", "duration_s",
                                           "n_waypoints"]].set_index("traj_id")
     for m in METHODS:
@@ -134,14 +123,14 @@ def trajectory_table(layout) -> pd.DataFrame:
         base[f"evals_{m}"] = sub["evaluations"].astype(int)
     audit = pd.read_csv(layout.audit_csv).set_index("traj_id")
     base["audit_states"] = audit["audit_states"].astype(int)
-    base["audit_collision"] = _bool(audit["audit_collision"])
+    base["audit_collision"] = as_bool(audit["audit_collision"])
     larc = cert[cert["method"] == "larc"].set_index("traj_id")
     fine = cert[cert["method"] == "fine"].set_index("traj_id")
     base["min_clearance_m"] = larc["min_clearance_m"]
     timing = pd.read_csv(layout.timing_summary_csv).set_index("traj_id")
     for m in METHODS:
         base[f"time_{m}_ms"] = timing[f"time_{m}_ms"]
-    base["self_collision"] = _bool(audit["self_collision"])
+    base["self_collision"] = as_bool(audit["self_collision"])
     base["speedup_fine_over_larc"] = timing["speedup_fine_over_larc"]
     base["min_clearance_fine_m"] = fine["min_clearance_m"]
     base["blocked_capsule"] = larc["blocked_capsule"].fillna("")
@@ -160,7 +149,7 @@ def trajectory_table(layout) -> pd.DataFrame:
 # ----------------------------------------------------------------------------------------------
 
 
-def _stats(df: pd.DataFrame) -> dict:
+def stats(df: pd.DataFrame) -> dict:
     clear = ~df["audit_collision"]
     s = dict(
         n=len(df),
@@ -174,8 +163,8 @@ def _stats(df: pd.DataFrame) -> dict:
         rej=int((clear & ~df["certified_larc"]).sum()),
         states=int(df["audit_states"].sum()),
         evals={m: int(df[f"evals_{m}"].sum()) for m in METHODS},
-        med_ms={m: _median(df[f"time_{m}_ms"]) for m in METHODS},
-        speedup=_median(df["speedup_fine_over_larc"]),
+        med_ms={m: median(df[f"time_{m}_ms"]) for m in METHODS},
+        speedup=median(df["speedup_fine_over_larc"]),
         self_coll=int(df["self_collision"].sum()),
     )
     s["ratio"] = s["evals"]["larc"] / s["evals"]["fine"] if s["evals"]["fine"] else float("nan")
@@ -183,7 +172,7 @@ def _stats(df: pd.DataFrame) -> dict:
 
 
 def overall_table(df: pd.DataFrame, P=PAPER) -> pd.DataFrame:
-    s = _stats(df)
+    s = stats(df)
     by_var = {v: int(df.loc[df["variant"] == v, "audit_collision"].sum()) for v in VARIANTS}
     per_scene_n = ", ".join(f"{n} {sc}" for sc, n in df.groupby("scene", sort=False).size().items())
     both = df.groupby("pair_id")["variant"].nunique().eq(2).sum()
@@ -198,9 +187,9 @@ def overall_table(df: pd.DataFrame, P=PAPER) -> pd.DataFrame:
          P["fcl_collision"], "Direct controls only"),
         ("FCL-detected false-safe", f"{len(s['false_safe'])}/{s['fcl']}", f"{s['states']} audited states",
          f"{P['false_safe']}/{P['fcl_collision']}", f"{P['audit_states']} audited states"),
-        ("Conservative rejection", f"{s['rej']}/{s['clear']} ({_pct(s['rej'], s['clear'])})",
+        ("Conservative rejection", f"{s['rej']}/{s['clear']} ({pct(s['rej'], s['clear'])})",
          "Relative to the sampled audit",
-         f"{P['rejection']}/{P['sampled_clear']} ({_pct(P['rejection'], P['sampled_clear'])})",
+         f"{P['rejection']}/{P['sampled_clear']} ({pct(P['rejection'], P['sampled_clear'])})",
          "Relative to the sampled audit"),
         ("Interval evaluations", s["evals"]["larc"], f"Fine {s['evals']['fine']}; ratio {s['ratio']:.3f}",
          P["evals_larc"], f"Fine {P['evals_fine']}; ratio {P['eval_ratio']:.3f}"),
@@ -222,9 +211,9 @@ def per_scene_table(df: pd.DataFrame, scenes) -> pd.DataFrame:
         sub = df if sc == "overall" else df[df["scene"] == sc]
         if not len(sub):
             continue
-        s = _stats(sub)
+        s = stats(sub)
         rows.append(dict(
-            scene=SCENE_LABELS.get(sc, sc.replace("_", " ").capitalize()) if sc != "overall" else "Overall",
+            scene=scene_label(sc) if sc != "overall" else "Overall",
             N=s["n"], FCL=s["fcl"], Cert=s["cert"]["larc"], Rej=s["rej"],
             Eval=round(s["ratio"], 3), Speed=round(s["speedup"], 2),
             cert_fine=s["cert"]["fine"], cert_coarse=s["cert"]["coarse"], sampled_clear=s["clear"],
@@ -245,8 +234,8 @@ def rejection_by_variant_table(df: pd.DataFrame) -> pd.DataFrame:
         rows.append(dict(
             variant=v, trajectories=len(sub), audit_collision=int(sub["audit_collision"].sum()),
             sampled_clear=int(clear.sum()), certified_larc=int(sub["certified_larc"].sum()),
-            rejections=rej, rejection_rate=f"{rej}/{int(clear.sum())} ({_pct(rej, int(clear.sum()))})",
-            paper=f"{pv[0]}/{pv[1]} ({_pct(*pv)})",
+            rejections=rej, rejection_rate=f"{rej}/{int(clear.sum())} ({pct(rej, int(clear.sum()))})",
+            paper=f"{pv[0]}/{pv[1]} ({pct(*pv)})",
         ))
     return pd.DataFrame(rows)
 
@@ -290,7 +279,7 @@ def timing_table(layout, df: pd.DataFrame) -> pd.DataFrame:
             xla_compile_s=round(float(r["xla_compile_s_first_call"]), 3),
             batch_ms_per_trajectory=round(float(r["ms_per_trajectory"]), 3),
             evaluations_per_s=round(float(r["evaluations_per_s"]), 0),
-            paired_median_ms=round(_median(df[f"time_{m}_ms"]), 3),
+            paired_median_ms=round(median(df[f"time_{m}_ms"]), 3),
             paired_sum_of_medians_s=round(float(pd.to_numeric(df[f"time_{m}_ms"]).sum()) / 1e3, 3),
         ))
     return pd.DataFrame(rows)
@@ -358,238 +347,7 @@ def load_checks(layout) -> pd.DataFrame:
 def print_checks(checks: pd.DataFrame):
     print("[stageB] must-hold checks (reported, not asserted):", flush=True)
     for _, r in checks.iterrows():
-        ok = _bool(pd.Series([r["ok"]])).iloc[0]
+        ok = as_bool(pd.Series([r["ok"]])).iloc[0]
         print(f"[check] {'PASS' if ok else 'FAIL'}  {r['check']}: {r['observed']}", flush=True)
 
 
-# ----------------------------------------------------------------------------------------------
-# README
-# ----------------------------------------------------------------------------------------------
-
-
-def _notes(df: pd.DataFrame, gen: pd.DataFrame, timing: pd.DataFrame, config: dict, layout) -> list[str]:
-    s = _stats(df)
-    out = []
-    out.append(f"{s['n']} trajectories from {s['pairs']} pairs in {df['scene'].nunique()} scenes. LARC certified "
-               f"{s['cert']['larc']}, fixed-fine {s['cert']['fine']}, fixed-coarse {s['cert']['coarse']}.")
-    out.append("LARC and fixed-fine agreed on every decision." if not s["disagree"] else
-               f"LARC and fixed-fine disagreed on {len(s['disagree'])}: {', '.join(s['disagree'])}.")
-    by_var = df.groupby("variant")["audit_collision"].sum()
-    out.append(f"The audit checked {s['states']} states ({config['audit_hz']} Hz grid plus every waypoint) and "
-               f"found a scene collision in {s['fcl']} trajectories ("
-               + ", ".join(f"{v} {int(by_var.get(v, 0))}" for v in VARIANTS)
-               + f"); LARC certified {len(s['false_safe'])} of them"
-               + (f" ({', '.join(s['false_safe'])})" if s["false_safe"] else "")
-               + f". Fixed-coarse certified {s['false_safe_coarse']} of them. {s['self_coll']} trajectories had a "
-               "disallowed self-contact at some audited state (reported separately; outside the certificate).")
-    parts = []
-    for v in VARIANTS:
-        sub = df[df["variant"] == v]
-        clear = ~sub["audit_collision"]
-        rej = int((clear & ~sub["certified_larc"]).sum())
-        parts.append(f"{v} {rej}/{int(clear.sum())} ({_pct(rej, int(clear.sum()))})")
-    out.append(f"Conservative rejections: {s['rej']}/{s['clear']} sampled-clear trajectories "
-               f"({_pct(s['rej'], s['clear'])}); by variant: {'; '.join(parts)}.")
-    unc = df[~df["certified_larc"]]
-    if len(unc):
-        pairs = (unc["blocked_capsule"].astype(str) + " vs " + unc["blocked_box"].astype(str)).value_counts()
-        top = ", ".join(f"{k} ({v})" for k, v in pairs.head(4).items())
-        out.append(f"For each of the {len(unc)} uncertified trajectories, the capsule–box pair attaining the "
-                   f"minimum of g at its earliest inconclusive depth-{config['max_depth']} leaf: {top}.")
-    cert = df[df["certified_larc"]]
-    if len(cert):
-        g = pd.to_numeric(cert["min_clearance_m"], errors="coerce")
-        g = g[np.isfinite(g)]
-        if len(g):
-            out.append(f"Smallest certificate clearance g over the leaves of certified trajectories with obstacles: "
-                       f"median {1e3 * g.median():.1f} mm, minimum {1e3 * g.min():.2f} mm.")
-    ratios = df.groupby("scene", sort=False).apply(
-        lambda x: x["evals_larc"].sum() / x["evals_fine"].sum(), include_groups=False)
-    out.append("LARC/fine evaluation ratio by scene: " + ", ".join(f"{k} {v:.3f}" for k, v in ratios.items())
-               + f" (overall {s['ratio']:.3f}); per trajectory LARC used {int(df['evals_larc'].min())} to "
-               f"{int(df['evals_larc'].max())} evaluations.")
-    sp = pd.to_numeric(df["speedup_fine_over_larc"])
-    med_sc = df.groupby("scene", sort=False)["speedup_fine_over_larc"].median()
-    out.append(f"Paired per-trajectory timing (one trajectory per call, median of {config['timing_repeats']} "
-               f"repeats): LARC median {s['med_ms']['larc']:.1f} ms, fine {s['med_ms']['fine']:.1f} ms, "
-               f"coarse {s['med_ms']['coarse']:.1f} ms; fine/LARC ratio from {sp.min():.2f}× to {sp.max():.2f}×, "
-               "scene medians " + ", ".join(f"{k} {v:.2f}×" for k, v in med_sc.items()) + ".")
-    t = timing.set_index("method")
-    out.append("Whole-batch (all trajectories in one call, median of warm calls, compile excluded): "
-               + ", ".join(f"{m} {t.loc[m, 'batch_s_median']:.3f} s (compile {t.loc[m, 'compile_s']:.2f} s)"
-                           for m in METHODS) + ".")
-    try:
-        raw = pd.read_csv(layout.timing_raw_csv)
-        nc = int(raw.loc[raw["kind"] == "timed", "compiles"].sum())
-        out.append(f"XLA compilations inside timed per-trajectory calls: {nc} (warm-up calls excluded).")
-    except (OSError, KeyError, pd.errors.EmptyDataError):
-        pass
-    tot = gen[gen["scene"] == "total"].iloc[0]
-    out.append(f"Generation: {int(tot['attempts'])} attempts, {int(tot['accepted'])} accepted, "
-               + ", ".join(f"{int(tot[o])} {o.replace('_', ' ')}" for o in OUTCOMES[1:]) + ".")
-    for v in VARIANTS:
-        sub = df[df["variant"] == v]
-        if len(sub):
-            out.append(f"{v}: duration median {sub['duration_s'].median():.2f} s (range "
-                       f"{sub['duration_s'].min():.2f}–{sub['duration_s'].max():.2f} s), waypoints median "
-                       f"{int(sub['n_waypoints'].median())}.")
-    return out
-
-
-def _machine() -> str:
-    import os
-
-    try:
-        import jax
-
-        jv = jax.__version__
-    except Exception:  # noqa: BLE001
-        jv = "?"
-    return (f"{platform.system()} {platform.machine()}, {os.cpu_count()} CPUs, Python "
-            f"{platform.python_version()}, jax {jv}")
-
-
-def readme(df, overall, per_scene, rej, frontier, timing, gen, checks, config, quick, layout) -> str:
-    P = PAPER
-    L = []
-    L.append("# Stage B results")
-    L.append("")
-    L.append(f"Generated by `python -m experiments.stageB{' --quick' if quick else ''}` "
-             f"({'quick run: ' + str(config.get('quick_pairs_per_scene', 2)) + ' pairs per scene' if quick else 'full run'}). "
-             "Every number below is computed from the files in this folder; the paper's values are "
-             "from `../shared/paper/larc_paper.tex` (Tables II and III, text).")
-    L.append("")
-    L.append(f"Protocol (`configs/stageB.yaml`): margin ρ = {1e3 * float(config['margin_m']):.0f} mm, "
-             f"d_max = {config['max_depth']}, coarse depth {config['coarse_depth']}, audit {config['audit_hz']} Hz "
-             f"+ waypoints, recheck {config['recheck_hz']} Hz, timing seed {config['timing_seed']}, "
-             f"{config['timing_repeats']} repeats. Machine: {_machine()}.")
-    L.append("")
-    L.append("## Overall (paper Table II)")
-    L.append("")
-    L.append("| Metric | Ours | Ours: detail | Paper | Paper: detail |")
-    L.append("|---|---:|---|---:|---|")
-    for _, r in overall.iterrows():
-        L.append(f"| {r['metric']} | {r['ours']} | {r['ours_detail']} | {r['paper']} | {r['paper_detail']} |")
-    L.append("")
-    L.append("## By scene (paper Table III)")
-    L.append("")
-    L.append("FCL: audit-detected collisions; Cert.: certified by LARC; Rej.: conservative rejections; "
-             "Eval.: LARC/fine evaluation ratio; Speed: median paired speedup. Each cell: ours (paper).")
-    L.append("")
-    L.append("| Scene | N | FCL | Cert. | Rej. | Eval. | Speed |")
-    L.append("|---|---:|---:|---:|---:|---:|---:|")
-    keys = {v: k for k, v in SCENE_LABELS.items()}
-    for _, r in per_scene.iterrows():
-        k = "overall" if r["scene"] == "Overall" else keys.get(r["scene"], r["scene"])
-        p = P["per_scene"].get(k)
-        ps = (lambda i, f="{}": f" ({f.format(p[i])})" if p else "")
-        L.append(f"| {r['scene']} | {r['N']}{ps(0)} | {r['FCL']}{ps(1)} | {r['Cert']}{ps(2)} | {r['Rej']}{ps(3)} | "
-                 f"{r['Eval']:.3f}{ps(4, '{:.3f}')} | {r['Speed']:.2f}×{ps(5, '{:.2f}×')} |")
-    L.append("")
-    L.append("## Conservative rejection by variant")
-    L.append("")
-    L.append("| Variant | Trajectories | Audit collisions | Sampled-clear | Certified | Rejections (ours) | Paper |")
-    L.append("|---|---:|---:|---:|---:|---|---|")
-    for _, r in rej.iterrows():
-        L.append(f"| {r['variant']} | {r['trajectories']} | {r['audit_collision']} | {r['sampled_clear']} | "
-                 f"{r['certified_larc']} | {r['rejection_rate']} | {r['paper']} |")
-    L.append("")
-    L.append("## Generation attempts")
-    L.append("")
-    L.append("| Scene | Attempts | Accepted | Invalid start | Invalid goal | Planning failure | Hermite recheck failure |")
-    L.append("|---|---:|---:|---:|---:|---:|---:|")
-    for _, r in gen.iterrows():
-        L.append(f"| {r['scene']} | {r['attempts']} | {r['accepted']} | {r['invalid_start']} | {r['invalid_goal']} | "
-                 f"{r['planning_failure']} | {r['hermite_recheck_failure']} |")
-    L.append("")
-    L.append("## Interval work per depth (LARC frontier vs fixed-fine)")
-    L.append("")
-    L.append("| Depth | LARC frontier | passed | inconclusive | fine intervals at depth (2^d·N) | fine evaluated |")
-    L.append("|---:|---:|---:|---:|---:|---:|")
-    for _, r in frontier.iterrows():
-        L.append(f"| {r['depth']} | {r['larc_frontier']} | {r['larc_passed']} | {r['larc_inconclusive']} | "
-                 f"{r['fine_intervals_at_depth']} | {r['fine_evaluated']} |")
-    L.append("")
-    L.append("## Timing")
-    L.append("")
-    L.append("Whole batch = all trajectories in ONE `certify` call (median of warm calls; the first call, "
-             "which compiles, is reported separately; methods run in the order larc, fine, coarse, and a kernel "
-             "shape compiled for an earlier method is reused by a later one, so its compile time is attributed "
-             "to the earlier method). Paired = one trajectory per call, the paper's protocol (median of the "
-             "repeats per trajectory and method; the first call per trajectory and method is an untimed warm-up).")
-    L.append("")
-    L.append("| Method | Evaluations | Batch (s) | First call (s) | Compile (s) | Batch ms/trajectory | "
-             "Paired median (ms) |")
-    L.append("|---|---:|---:|---:|---:|---:|---:|")
-    for _, r in timing.iterrows():
-        L.append(f"| {r['method']} | {r['evaluations']} | {r['batch_s_median']:.3f} | {r['first_call_s']:.2f} | "
-                 f"{r['compile_s']:.2f} | {r['batch_ms_per_trajectory']:.2f} | {r['paired_median_ms']:.2f} |")
-    L.append("")
-    L.append("## Must-hold checks")
-    L.append("")
-    L.append("| Check | Expected | Observed | OK |")
-    L.append("|---|---|---|---|")
-    for _, r in checks.iterrows():
-        L.append(f"| {r['check']} | {r['expected']} | {r['observed']} | {'yes' if r['ok'] else '**NO**'} |")
-    L.append("")
-    L.append("## Notes (generated from the data)")
-    L.append("")
-    for n in _notes(df, gen, timing, config, layout):
-        L.append(f"- {n}")
-    L.append("")
-    L.append("## Why they differ")
-    L.append("")
-    if quick:
-        L.append("Quick run (2 pairs per scene): too few trajectories to compare with the paper; see the "
-                 "full run's `results/stageB/README.md`.")
-    elif DISCUSSION.is_file():
-        L.append(f"_Written by hand from the full run's figures (`{DISCUSSION.relative_to(ROOT)}`)._")
-        L.append("")
-        L.append(DISCUSSION.read_text().strip())
-    else:
-        L.append(f"No discussion yet: write `{DISCUSSION.relative_to(ROOT)}` and rerun the tables stage.")
-    L.append("")
-    L.append("## Files")
-    L.append("")
-    L.append("- `trajectories.csv` — one row per trajectory; `overall`, `per_scene`, `rejection_by_variant`, "
-             "`frontier_levels`, `frontier_levels_by_scene`, `batch_timing`, `generation`, `checks` (`.csv` and `.md`).")
-    L.append("- `dataset/` — trajectory files and `attempts.csv`; `audit/audit.csv`; `certification/` "
-             "(per-method results, LARC levels, batch timing); `timing/` (raw paired timings and medians); "
-             "`figures/`.")
-    L.append("")
-    return "\n".join(L)
-
-
-# ----------------------------------------------------------------------------------------------
-# Entry point
-# ----------------------------------------------------------------------------------------------
-
-
-def make_tables(layout, config: dict, quick: bool = False) -> dict:
-    from larc_jax.io import atomic_write_text
-
-    out = layout.out
-    scenes = list(config.get("scene_order") or config["scenes"])
-    df = trajectory_table(layout)
-    df["scene"] = pd.Categorical(df["scene"], categories=scenes, ordered=True)
-    df = df.sort_values(["scene", "traj_id"]).reset_index(drop=True)
-    df["scene"] = df["scene"].astype(str)
-    _write(out, "trajectories", df, "Stage B trajectories")
-    overall = overall_table(df)
-    _write(out, "overall", overall, "Overall results (paper Table II)")
-    per_scene = per_scene_table(df, scenes)
-    _write(out, "per_scene", per_scene, "Results by scene (paper Table III)")
-    rej = rejection_by_variant_table(df)
-    _write(out, "rejection_by_variant", rej, "Conservative rejection by variant")
-    frontier, frontier_sc = frontier_tables(layout, df, config)
-    _write(out, "frontier_levels", frontier, "LARC frontier per depth vs fixed-fine")
-    _write(out, "frontier_levels_by_scene", frontier_sc, "LARC frontier per depth and scene")
-    timing = timing_table(layout, df)
-    _write(out, "batch_timing", timing, "Certification timing: whole batch (compile separately) and paired medians")
-    gen = generation_table(layout, scenes)
-    _write(out, "generation", gen, "Generation attempts")
-    checks = checks_table(df, gen, config, quick)
-    _write(out, "checks", checks, "Must-hold checks (reported, not asserted)")
-    atomic_write_text(out / "README.md", readme(df, overall, per_scene, rej, frontier, timing, gen, checks,
-                                                config, quick, layout))
-    return dict(checks_failed=int((~checks["ok"]).sum()))

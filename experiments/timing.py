@@ -32,16 +32,19 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from experiments.common import METHODS, Layout, read_csv, write_csv
+
 __all__ = [
-    "METHODS",
-    "CompileCounter",
+    "CODE",
     "batch_certify",
     "paired_timing",
     "summarise_timing",
+    "certify_stage",
+    "timing_stage",
 ]
 
-METHODS = ("larc", "fine", "coarse")
-BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+CODE = ("experiments.timing",)
+"""Modules whose import closure is the certification and timing stages' code."""
 CLEAR_CACHES_AFTER_COMPILES = 200
 """Paired timing calls ``jax.clear_caches()`` between trajectories once this many XLA executables
 were compiled since the last clear. Every compiled CPU executable keeps ~100 memory mappings
@@ -50,45 +53,6 @@ the kernel shapes depend on the trajectory's waypoint count, so timing trajector
 different lengths in one process otherwise exhausts ``vm.max_map_count`` (65530): LLVM then
 fails with "Cannot allocate memory" and the process crashes (seen after ~78 distinct lengths).
 Clearing only happens between trajectories, before the next one's untimed warm-up calls."""
-
-
-class CompileCounter:
-    """Counts XLA backend compilations (and their seconds) while active.
-
-    Uses :func:`jax.monitoring.register_event_duration_secs_listener`; JAX offers no way to
-    remove a single listener in every version, so one module-level listener feeds all counters.
-    """
-
-    _active: list["CompileCounter"] = []
-    _installed = False
-
-    def __init__(self):
-        self.count = 0
-        self.seconds = 0.0
-
-    @classmethod
-    def _install(cls):
-        if cls._installed:
-            return
-        import jax.monitoring
-
-        def listener(event: str, duration: float, **kwargs):
-            if event == BACKEND_COMPILE_EVENT:
-                for c in cls._active:
-                    c.count += 1
-                    c.seconds += float(duration)
-
-        jax.monitoring.register_event_duration_secs_listener(listener)
-        cls._installed = True
-
-    def __enter__(self):
-        self._install()
-        self._active.append(self)
-        return self
-
-    def __exit__(self, *exc):
-        self._active.remove(self)
-        return False
 
 
 @contextlib.contextmanager
@@ -103,12 +67,15 @@ def _no_gc():
 
 
 def _timed_call(fn: Callable[[], object]):
-    """(result, seconds, compiles) of one call, garbage collection paused."""
-    with CompileCounter() as cc, _no_gc():
+    """(result, seconds, XLA compilations, XLA compile seconds) of one call, garbage collection
+    paused."""
+    from larc_jax.compilation import CompileClock
+
+    with CompileClock() as clock, _no_gc():
         t0 = time.perf_counter()
         out = fn()
         dt = time.perf_counter() - t0
-    return out, dt, cc.count, cc.seconds
+    return out, dt, clock.compiles, clock.compile_s
 
 
 def _decisions(result) -> tuple:
@@ -267,3 +234,105 @@ def summarise_timing(raw, methods: Sequence[str] = METHODS):
     if "fine" in methods and "larc" in methods:
         out["speedup_fine_over_larc"] = out["time_fine_ms"] / out["time_larc_ms"]
     return out.reset_index()
+
+
+# ----------------------------------------------------------------------------------------------
+# Stage B's certification and timing stages
+# ----------------------------------------------------------------------------------------------
+
+
+def _cert_params(config: dict) -> dict:
+    return dict(margin=float(config["margin_m"]), max_depth=int(config["max_depth"]),
+                coarse_depth=int(config["coarse_depth"]))
+
+
+def certify_stage(layout: Layout, config: dict, repeats: int = 3) -> dict:
+    """Each method certifies the whole dataset in one call (:func:`batch_certify`): per-method
+    results (``certification/results.csv``), LARC's frontier per depth and trajectory
+    (``larc_levels.csv``) and the batch times (``batch_timing.csv``)."""
+    from experiments.models import load_dataset, robot_and_capsules
+
+    robot, caps = robot_and_capsules(config)
+    index, trajs, scenes = load_dataset(layout, config, robot)
+    if not trajs:
+        raise RuntimeError(f"no trajectories under {layout.trajectories_dir}")
+    results, batch_rows = batch_certify(trajs, scenes, robot, caps, methods=METHODS, repeats=repeats,
+                                        **_cert_params(config))
+    max_depth = int(config["max_depth"])
+    rows, levels = [], []
+    for m in METHODS:
+        res = results[m]
+        df = res.to_dataframe().set_index("id")
+        for r, meta, tr in zip(res.trajectories, index, trajs):
+            assert r.id == meta["traj_id"], (r.id, meta["traj_id"])
+            d = df.loc[r.id]
+            row = dict(traj_id=r.id, scene=meta["scene"], pair_id=meta["pair_id"], variant=meta["variant"],
+                       duration_s=tr.duration, n_waypoints=tr.n_waypoints, method=m,
+                       certified=r.certified, evaluations=r.evaluations, min_clearance_m=r.min_clearance_m,
+                       blocked_t0=d["blocked_t0"], blocked_t1=d["blocked_t1"],
+                       blocked_capsule=d["blocked_capsule"], blocked_box=d["blocked_box"])
+            for k in range(max_depth + 1):
+                row[f"f{k}"] = r.frontier_sizes[k] if k < len(r.frontier_sizes) else 0
+            rows.append(row)
+            if m == "larc":
+                passed = [0] * (max_depth + 1)
+                for leaf in r.leaves:
+                    passed[leaf.depth] += int(leaf.certified)
+                for k in range(max_depth + 1):
+                    f = r.frontier_sizes[k]
+                    levels.append(dict(traj_id=r.id, scene=meta["scene"], variant=meta["variant"], depth=k,
+                                       frontier=f, passed=passed[k], inconclusive=f - passed[k]))
+    write_csv(layout.cert_results_csv, rows)
+    write_csv(layout.cert_levels_csv, levels)
+    write_csv(layout.cert_batch_csv, batch_rows)
+    for b in batch_rows:
+        print(f"[stageB] certify: {b['method']:>6}: {b['certified']}/{b['trajectories']} certified, "
+              f"{b['evaluations']} evaluations, batch {b['batch_s_median']:.3f} s (median of "
+              f"{b['warm_repeats']}), first call {b['first_call_s']:.2f} s (compile ~{b['compile_s']:.2f} s)",
+              flush=True)
+    return dict(trajectories=len(trajs))
+
+
+RAW_TIMING_FIELDS = ["traj_id", "scene", "kind", "repeat", "position", "method", "time_ms", "compiles",
+                     "certified", "evaluations"]
+
+
+def timing_stage(layout: Layout, config: dict, key: str, force: bool) -> dict:
+    """The paired per-trajectory timing (:func:`paired_timing`) into ``timing/raw.csv`` (rows
+    cached per trajectory while ``key`` matches ``timing/raw.key``) and its summary
+    ``timing/per_trajectory.csv``."""
+    from experiments.models import load_dataset, robot_and_capsules
+    from larc_jax.io import atomic_write_text
+
+    robot, caps = robot_and_capsules(config)
+    index, trajs, scenes = load_dataset(layout, config, robot)
+    key_file = layout.timing_dir / "raw.key"
+    cached: dict[str, list[dict]] = {}
+    if not force and key_file.is_file() and key_file.read_text().strip() == key:
+        for r in read_csv(layout.timing_raw_csv):
+            cached.setdefault(r["traj_id"], []).append(r)
+    ids = [t.id for t in trajs]
+    rows_by_id = {i: cached[i] for i in ids if i in cached}
+    atomic_write_text(key_file, key + "\n")
+
+    def flush():
+        write_csv(layout.timing_raw_csv, [r for i in ids if i in rows_by_id for r in rows_by_id[i]],
+                  RAW_TIMING_FIELDS)
+
+    def on_traj(rows):
+        rows_by_id[rows[0]["traj_id"]] = rows
+        flush()
+
+    flush()
+    if len(rows_by_id) < len(ids):
+        print(f"[stageB] timing: {len(rows_by_id)} trajectories cached, {len(ids) - len(rows_by_id)} to time "
+              f"(seed {config['timing_seed']}, {config['timing_repeats']} repeats)", flush=True)
+        paired_timing(trajs, scenes, robot, caps, seed=int(config["timing_seed"]),
+                      repeats=int(config["timing_repeats"]), skip=set(rows_by_id),
+                      on_trajectory=on_traj, **_cert_params(config))
+    summary = summarise_timing([r for i in ids for r in rows_by_id[i]])
+    atomic_write_text(layout.timing_summary_csv, summary.to_csv(index=False))
+    n_comp = int(summary["timed_compiles"].sum())
+    if n_comp:
+        print(f"[stageB] timing: WARNING {n_comp} XLA compilations happened inside timed calls", flush=True)
+    return dict(trajectories=len(ids), timed_compiles=n_comp)

@@ -11,6 +11,7 @@ Typical use::
 """
 
 from .certify import Method, certify
+from .compilation import enable_compile_cache
 from .defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
 from .enclosure import (
     CapsuleModel,
@@ -42,6 +43,6 @@ __all__ = [
     "default_capsule_path", "evaluate_interval", "fit_capsules", "forward_kinematics", "interval_clearance",
     "load_capsules", "load_robot", "load_robot_file", "motion_constants", "read_scene", "read_trajectory",
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
-    "write_trajectory", "read_moveit_scene", "finite_difference_velocities",
+    "write_trajectory", "read_moveit_scene", "finite_difference_velocities", "enable_compile_cache",
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
 ]

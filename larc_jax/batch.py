@@ -27,6 +27,7 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
+from .compilation import cached_kernel_call
 from .enclosure.capsule import CapsuleModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import RoundingBounds, evaluate_interval, rebase_ends
@@ -59,6 +60,30 @@ def dyadic_ends(t_start, t_end, depth, index):
     return a, b
 
 
+_SEEN: set = set()
+"""Call signatures (function, shapes, dtypes, static structure) seen by :func:`_call` with an
+``on_compile`` listener: a call with a new one compiles first (or loads from the persistent
+cache). Tracked only when someone listens, so the default path pays nothing."""
+
+
+def _call(fn, args, on_compile: Callable[[bool], None] | None):
+    """``fn(*args)``, telling ``on_compile`` (True, then False) when the call compiles."""
+    if on_compile is None:
+        return fn(*args)
+    leaves = jax.tree.leaves(args)
+    sig = (fn, jax.tree.structure(args), tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
+           jax.config.jax_enable_x64)
+    new = sig not in _SEEN
+    if new:
+        on_compile(True)
+    try:
+        return fn(*args)
+    finally:
+        _SEEN.add(sig)
+        if new:
+            on_compile(False)
+
+
 @jax.jit
 def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
     """Evaluate F intervals: interval i belongs to trajectory ``traj[i]`` in scene ``scene[i]``.
@@ -71,6 +96,12 @@ def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, boun
         return ev.g, ev.guard, ev.capsule, ev.box
 
     return jax.vmap(one)(traj, scene, a, b)
+
+
+def _evaluate_intervals_cached(*args):
+    """:func:`_evaluate_intervals`, through its export kept in the compilation cache when that
+    is on (:func:`larc_jax.compilation.cached_kernel_call`; one device)."""
+    return cached_kernel_call(_evaluate_intervals, args)
 
 
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
@@ -150,9 +181,11 @@ class Batch:
             cost = _evaluate_intervals.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
         return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
 
-    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None):
+    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
+                 on_compile: Callable[[bool], None] | None = None):
         """``(a, b, g, guard, capsule, box)`` for every interval (NumPy arrays; ``a, b`` in the
-        trajectory's own time axis)."""
+        trajectory's own time axis); ``on_chunk(n)`` after each chunk of ``n`` intervals,
+        ``on_compile(True/False)`` around a compiling call."""
         a, b = self.endpoints(traj, depth, index)
         ar, br = self._rebased(traj, a, b)
         F = len(traj)
@@ -172,10 +205,11 @@ class Batch:
             bb = np.concatenate([br[sl], np.repeat(br[start], pad)])
             with jax.enable_x64(True):
                 tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
-                out = _evaluate_intervals(
+                kernel = _evaluate_intervals if len(self.devices) > 1 else _evaluate_intervals_cached
+                out = _call(kernel, (
                     self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
                     self.box_mask, self.bounds, tr_s, sc_s, aa, bb, self.margin,
-                )
+                ), on_compile)
                 gg, gd, cc, bx = (np.asarray(x) for x in out)
             n = stop - start
             g[sl], guard[sl], cap[sl], box[sl] = gg[:n], gd[:n], cc[:n], bx[:n]
@@ -185,12 +219,14 @@ class Batch:
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
-            margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None) -> Batch:
+            margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None,
+            on_compile: Callable[[bool], None] | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene and one
     :func:`~larc_jax.interval.trajectory_rounding` per trajectory).
 
     ``devices``: the devices to shard each interval batch over (default: every device of JAX's
     default backend, e.g. all local GPUs; on a CPU, one device unless XLA is asked for more).
+    ``on_compile``: see :meth:`Batch.evaluate`.
     """
     dtype = np.dtype(dtype)
     # Shapes are rounded up to size classes (see size_class); padded knots lie after t_K and
@@ -206,7 +242,8 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
     lo, hi, mask = pad_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)))
     with jax.enable_x64(True):
-        splines = _build_splines(*(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)))
+        splines = _call(_build_splines, tuple(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
+                        on_compile)
     robot_g, capsules_g = _geometry(robot, capsules, dtype)
     box_lo, box_hi = _boxes_outward(lo, hi, dtype)
     return Batch(

@@ -24,6 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .batch import Batch, dyadic_ends, prepare
+from .compilation import CompileClock
 from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS, check_depth,
                        check_margin)
 from .enclosure.capsule import CapsuleModel
@@ -83,7 +84,7 @@ def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, pas
     )
 
 
-def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress):
+def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress, on_compile=None):
     traj = np.arange(n_traj, dtype=np.int64)
     index = np.zeros(n_traj, np.int64)
     frontier = np.zeros((n_traj, max_depth + 1), np.int64)
@@ -93,7 +94,7 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress)
             break
         depth = np.full(len(traj), d)
         frontier[:, d] = np.bincount(traj, minlength=n_traj)
-        a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress)
+        a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress, on_compile)
         passed = g > guard  # NaN compares False: never certifies
         final = passed | (d == max_depth)
         parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], g[final],
@@ -104,12 +105,12 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress)
     return frontier, LeafTable.concatenate(parts)
 
 
-def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, progress):
+def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, progress, on_compile=None):
     m = 2**depth_fixed
     traj = np.repeat(np.arange(n_traj, dtype=np.int64), m)
     index = np.tile(np.arange(m, dtype=np.int64), n_traj)
     depth = np.full(len(traj), depth_fixed)
-    a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress)
+    a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress, on_compile)
     passed = g > guard
     frontier = np.zeros((n_traj, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
@@ -201,6 +202,7 @@ def certify(
     dtype=np.float64,
     progress: Callable[[int], None] | None = None,
     devices=None,
+    on_compile: Callable[[bool], None] | None = None,
 ) -> DatasetResult:
     """Certify trajectories against their scenes in one call.
 
@@ -216,9 +218,13 @@ def certify(
       progress: called with the number of intervals evaluated after each chunk.
       devices: JAX devices to shard the intervals over (default: all devices of the default
         backend; see :mod:`larc_jax.batch`). Results do not depend on it.
+      on_compile: called with ``True`` before a kernel shape new to this process is compiled
+        (or loaded from the persistent cache, :mod:`larc_jax.compilation`), ``False`` after.
 
-    Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory.
-    JAX computations run with 64-bit types enabled only inside this call (scoped, not global).
+    Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory, its
+    ``compile_time_s`` the part of ``wall_time_s`` spent compiling. Links that ``capsules``
+    excludes (:meth:`CapsuleModel.without_links`) are named in the result. JAX computations run
+    with 64-bit types enabled only inside this call (scoped, not global).
     """
     try:
         method = Method(method)
@@ -231,23 +237,24 @@ def certify(
     if method == Method.REFERENCE:
         dtype = np.float64  # the reference is NumPy float64
     bounds = [trajectory_rounding(t, robot, capsules, dtype) for t in trajectories]
-    if method == Method.REFERENCE:
-        frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, bounds,
-                                      progress)
-    else:
-        batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices)
-        if method == Method.LARC:
-            frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress)
+    with CompileClock() as clock:
+        if method == Method.REFERENCE:
+            frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, bounds,
+                                          progress)
         else:
-            depth = max_depth if method == Method.FINE else coarse_depth
-            frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress)
+            batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices, on_compile)
+            if method == Method.LARC:
+                frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress, on_compile)
+            else:
+                depth = max_depth if method == Method.FINE else coarse_depth
+                frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress, on_compile)
     wall = time.perf_counter() - start
     return _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
-                           float(margin), max_depth, wall)
+                           float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds))
 
 
 def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, bounds,
-                    margin, max_depth, wall) -> DatasetResult:
+                    margin, max_depth, wall, compile_time_s: float = 0.0) -> DatasetResult:
     n = len(trajectories)
     bad = np.bincount(leaves.traj, weights=~leaves.certified, minlength=n) > 0
     nan = np.bincount(leaves.traj, weights=np.isnan(leaves.clearance_m), minlength=n) > 0
@@ -260,4 +267,5 @@ def _dataset_result(method, trajectories, scenes, names, capsules, frontier, lea
         guard_m=np.array([np.max(b.guard_m) for b in bounds], np.float64), leaves=leaves,
         capsule_names=tuple(capsules.names), box_names=names.box_names, margin_m=margin, max_depth=max_depth,
         wall_time_s=wall, time_offset_s=np.array([float(b.offset_s) for b in bounds], np.float64),
+        compile_time_s=compile_time_s, excluded_links=capsules.excluded_links,
     )

@@ -1,4 +1,4 @@
-"""The ``larc`` command line.
+"""The larc command line: continuous-time collision certificates for robot-arm trajectories.
 
 Exit status: 0 success / every trajectory certified, 1 some trajectory not certified (``larc
 certify`` without ``--no-fail-on-uncertified``), 2 bad input or usage (one line on stderr naming
@@ -7,6 +7,10 @@ the file, field and index), 3 internal error (a bug: traceback on stderr).
 Output: tables and results on stdout; log messages (loggers ``larc`` and ``larc_jax``), progress
 bars and errors on stderr. ``--quiet`` leaves only errors (and the files asked for); ``-v`` adds debug messages.
 Progress bars are shown when stderr is a terminal (``--progress`` / ``--no-progress`` force).
+
+Compiled JAX kernels are kept in a persistent cache (:mod:`larc_jax.compilation`; default
+``~/.cache/larc_jax/jax``), so a second ``larc certify`` skips XLA compilation;
+``--no-compile-cache`` or ``LARC_COMPILE_CACHE=0`` turn that off.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import argparse
 import contextlib
 import logging
 import sys
+import time
 import traceback
 import warnings
 from pathlib import Path
@@ -216,18 +221,72 @@ def _cmd_verify_capsules(args) -> int:
     return EXIT_OK
 
 
+class _PhaseTimer:
+    """Seconds per phase of a command, for the ``-v`` log."""
+
+    def __init__(self):
+        self.t = time.perf_counter()
+        self.laps: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = now - self.t
+        self.t = now
+
+    def log(self, result) -> None:
+        log.debug("time: %s (of which compiling %.2f s, running %.2f s)",
+                  ", ".join(f"{k} {v:.2f} s" for k, v in self.laps.items()), result.compile_time_s,
+                  result.wall_time_s - result.compile_time_s)
+
+
+def _compile_cache(args) -> None:
+    """Turn on JAX's persistent compilation cache unless ``--no-compile-cache`` or
+    ``LARC_COMPILE_CACHE=0`` say not to (:mod:`larc_jax.compilation`)."""
+    from .compilation import CACHE_ENV, cache_dir_from_env, enable_compile_cache
+
+    if not getattr(args, "compile_cache", True):
+        log.debug("compilation cache: off (--no-compile-cache)")
+        return
+    folder = cache_dir_from_env()
+    if folder is None:
+        log.debug("compilation cache: off (%s=0)", CACHE_ENV)
+        return
+    try:
+        log.debug("compilation cache: %s", enable_compile_cache(folder))
+    except OSError as exc:  # an unwritable cache is no reason to fail: compile instead
+        log.warning("compilation cache %s unusable (%s); compiling without it", folder, exc.strerror or exc)
+
+
 def _certify_with_progress(args, trajectories, scene, robot, capsules):
+    """Certify with a progress bar that says "compiling" while JAX compiles a kernel shape."""
     from .certify import certify
+    from .compilation import CompileClock
 
     n = len(trajectories)
     total = {"fine": n * 2**args.max_depth, "coarse": n * 2**DEFAULT_COARSE_DEPTH}.get(args.method)
-    with _progress_bar(args, total=total, desc=f"certifying ({args.method})",
-                       unit=" intervals") as bar:
-        result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
-                         max_depth=args.max_depth, progress=lambda k: bar.update(k))
-    log.debug("certified %d trajectories in %.3f s (frontier per depth %s)", n, result.wall_time_s,
-              list(result.frontier_sizes))
+    desc = f"certifying ({args.method})"
+    with _progress_bar(args, total=total, desc=desc, unit=" intervals") as bar:
+        def on_compile(starting: bool) -> None:
+            bar.set_description_str("compiling kernels" if starting else desc)
+
+        with CompileClock() as clock:
+            result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
+                             max_depth=args.max_depth, progress=lambda k: bar.update(k), on_compile=on_compile)
+    log.debug("kernels: %d compiled or loaded, %d of them from the persistent cache; tracing %.2f s, lowering "
+              "%.2f s, XLA compile or cache load %.2f s", clock.compiles, clock.cache_hits, clock.trace_s,
+              clock.lower_s, clock.compile_s)
+    log.debug("certified %d trajectories in %.3f s, of which %.3f s compiling (frontier per depth %s)", n,
+              result.wall_time_s, result.compile_time_s, list(result.frontier_sizes))
     return result
+
+
+def _capsules_without(args, robot, capsules):
+    """The capsule model without the links of ``--ignore-link`` (refused if they move)."""
+    if getattr(args, "ignore_link", None):
+        capsules = capsules.without_links(robot, args.ignore_link, what="--ignore-link")
+    if capsules.excluded_links:
+        log.debug("certificate excludes links: %s", ", ".join(capsules.excluded_links))
+    return capsules
 
 
 def _check_certify_options(args, outputs=()) -> None:
@@ -256,11 +315,17 @@ def _cmd_certify(args) -> int:
         raise LarcInputError("certify needs --scene FILE (or --manifest FILE.csv, whose rows name the scenes)")
     _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves)))
     leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
+    timer = _PhaseTimer()
     robot, capsules = load_robot_file(args.robot)
+    capsules = _capsules_without(args, robot, capsules)
+    timer.lap("robot")
     scene = read_scene(args.scene, frame=robot.link_names[0])
     log.debug("scene %s: %d boxes", args.scene, scene.n_boxes)
     trajectories = _read_trajectories(args, args.trajectories, robot)
+    timer.lap("read")
     result = _certify_with_progress(args, trajectories, scene, robot, capsules)
+    timer.lap("certify")
+    timer.log(result)
     if not args.quiet:
         print("\n".join(table_lines(result)))
     if args.json:
@@ -291,7 +356,7 @@ def _certify_manifest(args) -> int:
     _check_certify_options(args)
     job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, method=args.method,
                       margin_m=args.margin, max_depth=args.max_depth, velocities=args.velocities,
-                      chunk_size=args.chunk_size)
+                      chunk_size=args.chunk_size, ignore_links=tuple(args.ignore_link or ()))
     rows_done = [0]
     with _progress_bar(args, desc=f"certifying ({args.method})", unit=" intervals") as bar:
 
@@ -354,6 +419,7 @@ def _cmd_explain(args) -> int:
     _check_certify_options(args, (("--output", args.output),))
     _check_image_path(out or Path("x.png"))  # fail before the work
     robot, capsules = load_robot_file(args.robot)
+    capsules = _capsules_without(args, robot, capsules)
     scene = read_scene(args.scene, frame=robot.link_names[0])
     (traj,) = _read_trajectories(args, [args.trajectory], robot)
     result = _certify_with_progress(args, [traj], scene, robot, capsules)[0]
@@ -378,7 +444,7 @@ def _cmd_explain(args) -> int:
 
 
 def _output_options(in_subcommand: bool) -> argparse.ArgumentParser:
-    """--quiet / --verbose / --progress, accepted before and after the subcommand. In the
+    """--quiet / --verbose / --progress / --compile-cache, accepted before and after the subcommand. In the
     subcommands their default is SUPPRESS, so a flag given before the subcommand survives."""
     o = argparse.ArgumentParser(add_help=False)
     g = o.add_argument_group("output")
@@ -389,6 +455,9 @@ def _output_options(in_subcommand: bool) -> argparse.ArgumentParser:
                    help="debug log messages on stderr")
     g.add_argument("--progress", action=argparse.BooleanOptionalAction, **(unset or {"default": None}),
                    help="progress bars on stderr (default: only when stderr is a terminal)")
+    g.add_argument("--compile-cache", action=argparse.BooleanOptionalAction, **(unset or {"default": True}),
+                   help="keep compiled kernels in ~/.cache/larc_jax (or $LARC_COMPILE_CACHE) so later runs "
+                        "skip compiling (default: on; LARC_COMPILE_CACHE=0 also turns it off)")
     return o
 
 
@@ -438,7 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "Exit status: 0 proven, 2 bad input or not contained (the link and element are named), "
                     "3 internal error.")
     v.add_argument("robot", nargs="?", metavar="ROBOT.yaml",
-                   help="robot file from `larc fit-capsules` (default: PIPER's configs/piper_capsules.yaml)")
+                   help="robot file from `larc fit-capsules` (default: PIPER's capsule file shipped in larc_jax/data/piper_capsules.yaml)")
     v.set_defaults(func=_cmd_verify_capsules)
 
     c = sub.add_parser("certify", help="certify trajectories against a scene", parents=common,
@@ -446,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "1 some not certified, 2 bad input or usage, 3 internal error.")
     c.add_argument("trajectories", nargs="*", metavar="TRAJ_FILE",
                    help="trajectory files: JointTrajectory / RobotTrajectory / DisplayTrajectory "
-                        "YAML or JSON (e.g. `ros2 topic echo --once` output), or CSV "
+                        "YAML or JSON (e.g. the output of 'ros2 topic echo --once'), or CSV "
                         "(t, <joint>..., <joint>_vel...)")
     c.add_argument("--scene",
                    help="scene YAML {frame, boxes: [{name, min, max}]} or MoveIt .scene text (boxes); "
@@ -460,7 +529,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"clearance margin rho, m (default {DEFAULT_MARGIN_M})")
     c.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
                    help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
-    c.add_argument("--robot", help="robot file from `larc fit-capsules` (default: PIPER)")
+    c.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
+    c.add_argument("--ignore-link", action="append", metavar="LINK",
+                   help="leave this link out of the certificate (repeatable): only a link that never "
+                        "moves, e.g. a fixed base standing on its table; the output names it")
     c.add_argument("--json", metavar="OUT.json", help="write per-trajectory results as JSON")
     c.add_argument("--leaves", metavar="OUT.parquet",
                    help="write the full leaf cover, one row per leaf (id, depth, index, t0, t1, "
@@ -489,7 +561,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "written (certified or not), 2 bad input, 3 internal error.")
     e.add_argument("trajectory", metavar="TRAJ_FILE", help="one trajectory file (as for certify)")
     e.add_argument("--scene", required=True, help="scene file (as for certify)")
-    e.add_argument("--robot", help="robot file from `larc fit-capsules` (default: PIPER)")
+    e.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
+    e.add_argument("--ignore-link", action="append", metavar="LINK", help="as for certify")
     e.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
                    help="as for certify")
     e.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,
@@ -497,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
                    help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     e.add_argument("--leaf", choices=["first", "worst"], default="first",
-                   help="first: the first inconclusive leaf (the one `certify` names), or the "
+                   help="first: the first inconclusive leaf (the one certify names), or the "
                         "tightest leaf of a certified trajectory (default); worst: the leaf with "
                         "the smallest clearance")
     e.add_argument("--at", type=float, metavar="SECONDS", help="draw the leaf containing this time")
@@ -516,6 +589,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     with _logging_for(args):
         try:
+            if args.command in ("certify", "explain"):
+                _compile_cache(args)
             return args.func(args)
         except LarcInputError as exc:
             print(f"larc: error: {exc}", file=sys.stderr)

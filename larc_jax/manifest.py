@@ -131,6 +131,8 @@ class ManifestJob:
     max_depth: int = DEFAULT_MAX_DEPTH
     velocities: str = VELOCITY_MODES[0]
     chunk_size: int = DEFAULT_CHUNK_SIZE
+    ignore_links: tuple[str, ...] = ()
+    """Links left out of the certificate (``--ignore-link``; only links that never move)."""
 
     def check(self) -> None:
         check_margin(self.margin_m, "margin")
@@ -177,6 +179,7 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     from .trajectory_files import read_trajectory
 
     robot, capsules = _load_model(job.robot_file)
+    capsules = capsules.without_links(robot, job.ignore_links, what="--ignore-link")
     scenes: dict[Path, object] = {}
     good, errors = [], {}
     items = []
@@ -249,6 +252,7 @@ def _state(job: ManifestJob, manifest: Path) -> dict:
         "robot_file": job.robot_file, "robot_sha256": robot_sha, "method": job.method,
         "margin_m": job.margin_m, "max_depth": job.max_depth, "velocities": job.velocities,
         "chunk_size": job.chunk_size, "leaves": job.leaves is not None,
+        **({"ignore_links": list(job.ignore_links)} if job.ignore_links else {}),
     }
 
 

@@ -32,8 +32,12 @@ def table_lines(result: DatasetResult) -> list[str]:
         lines.append(f"{r.id:<{width}}  {'CERTIFIED' if r.certified else 'UNCERTIFIED':<11}  "
                      f"{r.evaluations:>6}  {format_clearance(r.min_clearance_m):>14}  {blocked}".rstrip())
     n_ok = sum(r.certified for r in result)
+    compiling = f" of which {result.compile_time_s:.2f} s compiling" if result.compile_time_s >= 0.005 else ""
     lines.append(f"{n_ok} of {len(result)} certified ({result.method}, margin {result.margin_m * 1000:g} mm, "
-                 f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s)")
+                 f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s{compiling})")
+    if result.excluded_links:
+        lines.append(f"the certificate excludes links: {', '.join(result.excluded_links)} (never checked against "
+                     "the boxes)")
     return lines
 
 
@@ -43,7 +47,8 @@ def result_json(result: DatasetResult, scene_path) -> dict:
 
     return {
         "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
-        "scene": str(scene_path),
+        "scene": str(scene_path), "excluded_links": list(result.excluded_links),
+        "wall_time_s": result.wall_time_s, "compile_time_s": result.compile_time_s,
         "frontier_sizes": list(result.frontier_sizes),
         "trajectories": [
             {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,

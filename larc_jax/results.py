@@ -104,6 +104,8 @@ class TrajectoryResult:
     the one it was compared against."""
     time_offset_s: float = 0.0
     """Offset subtracted (exactly) from every time before evaluation (budget T1), s."""
+    excluded_links: tuple[str, ...] = ()
+    """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -137,8 +139,14 @@ class DatasetResult:
     margin_m: float
     max_depth: int
     wall_time_s: float
+    """Seconds the whole call took, compilation included."""
     time_offset_s: np.ndarray | None = None
     """(N,) offset subtracted (exactly) from each trajectory's times (budget T1), s; None: 0."""
+    compile_time_s: float = 0.0
+    """Of ``wall_time_s``, seconds JAX spent tracing, lowering and compiling kernels (or loading
+    them from the persistent cache, :mod:`larc_jax.compilation`)."""
+    excluded_links: tuple[str, ...] = ()
+    """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
@@ -170,6 +178,7 @@ class DatasetResult:
             duration_s=float(self.duration_s[i]), scene=self.scene_names[i], margin_m=self.margin_m,
             max_depth=self.max_depth, guard_m=float(self.guard_m[i]),
             time_offset_s=0.0 if self.time_offset_s is None else float(self.time_offset_s[i]),
+            excluded_links=self.excluded_links,
         )
 
     @functools.cached_property

@@ -61,6 +61,12 @@ QUATERNION_NORM_TOLERANCE = 1e-3
 (MoveIt writes 6 significant digits, so a genuine rotation is within ~1e-6)."""
 
 
+def _corner_text(v: float) -> str:
+    """A box coordinate in a message, to 0.1 mm: a value that rounds to zero prints as
+    '0.0000', never '-0.0000' (the box's padding puts a corner on 0 a hair below it)."""
+    return f"{round(float(v), 4) + 0.0:.4f}"
+
+
 @dataclasses.dataclass(frozen=True)
 class Scene:
     """Obstacle boxes of one scene.
@@ -329,7 +335,7 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
             if np.abs(rot - np.eye(3)).max() > IDENTITY_TOLERANCE:  # a real rotation: say so
                 log.warning("%s: object '%s' (line %d) is a rotated box: replaced by its enclosing "
                             "axis-aligned box [%s] .. [%s] (conservative)", source, box_name, sline,
-                            ", ".join(f"{v:.4f}" for v in b_lo), ", ".join(f"{v:.4f}" for v in b_hi))
+                            ", ".join(map(_corner_text, b_lo)), ", ".join(map(_corner_text, b_hi)))
             lo.append(b_lo)
             hi.append(b_hi)
             names.append(box_name)

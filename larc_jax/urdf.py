@@ -349,8 +349,32 @@ def load_robot(
         the joint's limits). Mimic joints follow their leader; a value given for one must equal
         ``multiplier * leader + offset``.
     """
+    from .compilation import cached_robot, keep_robot
+
     urdf_path = Path(urdf_path) if urdf_path is not None else piper_urdf_path()
+    if not urdf_path.is_file():
+        raise LarcInputError(f"{urdf_path}: URDF file does not exist")
+    key = dict(urdf=str(urdf_path.resolve()), sha256=file_sha256(urdf_path),
+               package_dirs=sorted(package_dirs_for(urdf_path, package_dirs).items()),
+               active_joints=list(active_joints) if active_joints is not None else None,
+               held=sorted((str(k), float(v)) for k, v in (held_joint_values or {}).items()))
+    robot = cached_robot(key)  # None unless the compilation cache is on (the command line)
+    if robot is not None:
+        return robot
     model = load_urdf_model(urdf_path, package_dirs)
+    robot = _build_robot(model, urdf_path, package_dirs, active_joints, held_joint_values)
+    keep_robot(key, robot, _mesh_files(model, urdf_path, robot.package_dirs))
+    return robot
+
+
+def _mesh_files(model, urdf_path: Path, package_dirs) -> list[Path]:
+    dirs = dict(package_dirs)
+    return [resolve_uri(c.geometry.mesh.filename, urdf_path, dirs) for link in model.link_map.values()
+            for c in link.collisions if c.geometry is not None and c.geometry.mesh is not None]
+
+
+def _build_robot(model, urdf_path: Path, package_dirs, active_joints, held_joint_values) -> Robot:
+    """The steps of :func:`load_robot` after parsing."""
     joints = _check_joints(model, urdf_path)
     link_names, parent, joint_of, children = _tree(model, urdf_path)
     active = _active_chain(urdf_path, joints, link_names, parent, joint_of, children, active_joints)

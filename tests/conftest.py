@@ -1,17 +1,49 @@
-"""Shared fixtures. The PIPER description comes from LARC_PIPER_DESCRIPTION (set by .ci/run);
-tests fall back to ../shared/robots/piper_description beside the checkout."""
+"""Shared fixtures and the test session's environment.
+
+* The PIPER description comes from ``LARC_PIPER_DESCRIPTION``; tests fall back to
+  ``../shared/robots/piper_description`` beside the checkout. A *relative* value (the README's
+  commands give ``../shared/...``) is made absolute here, once, against the folder pytest was
+  started from: tests that run ``larc`` in temporary folders inherit the environment and must
+  still find PIPER.
+* Tests share a persistent compilation cache (:mod:`larc_jax.compilation`), in this process
+  and in the ``larc`` processes they start (``LARC_COMPILE_CACHE``): by default
+  ``$XDG_CACHE_HOME/larc_jax/tests`` (``~/.cache/...``), so a second test session compiles
+  little; ``LARC_TEST_COMPILE_CACHE=DIR`` moves it, ``LARC_TEST_COMPILE_CACHE=tmp`` uses a fresh
+  temporary folder (a cold, hermetic session). Entries are keyed by the compiled program (and
+  traced kernels by the library's sources), so a code change never meets a stale entry.
+"""
 
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 _SHARED = ROOT.parent / "shared" / "robots" / "piper_description"
-if "LARC_PIPER_DESCRIPTION" not in os.environ and _SHARED.is_dir():
-    os.environ["LARC_PIPER_DESCRIPTION"] = str(_SHARED)
+_ENV = "LARC_PIPER_DESCRIPTION"
+if os.environ.get(_ENV):
+    os.environ[_ENV] = str(Path(os.environ[_ENV]).expanduser().resolve())
+elif _SHARED.is_dir():
+    os.environ[_ENV] = str(_SHARED)
+
+_WHERE = os.environ.get("LARC_TEST_COMPILE_CACHE", "")
+if _WHERE == "tmp":
+    _TMP = tempfile.TemporaryDirectory(prefix="larc-test-compile-cache-")
+    _WHERE = _TMP.name
+if not _WHERE:
+    from larc_jax.compilation import default_cache_dir
+
+    _WHERE = str(default_cache_dir().parent / "tests")
+os.environ["LARC_COMPILE_CACHE"] = _WHERE
+
+
+def pytest_configure(config):
+    from larc_jax.compilation import enable_compile_cache
+
+    enable_compile_cache(os.environ["LARC_COMPILE_CACHE"])
 
 
 @pytest.fixture(scope="session")

@@ -68,6 +68,7 @@ def larc_result(dataset, robot, capsules):
     return certify(*dataset, robot, capsules, method="larc", margin=MARGIN)
 
 
+@pytest.mark.slow
 def test_reference_and_larc_agree_on_200(dataset, robot, capsules, larc_result):
     ref = certify(*dataset, robot, capsules, method="reference", margin=MARGIN)
     n_cert = sum(r.certified for r in ref)
@@ -82,6 +83,7 @@ def test_reference_and_larc_agree_on_200(dataset, robot, capsules, larc_result):
     assert ref.frontier_sizes == larc_result.frontier_sizes
 
 
+@pytest.mark.slow
 def test_leaves_cover_horizon(dataset, larc_result):
     for traj, res in zip(dataset[0], larc_result):
         leaves = res.leaves
@@ -92,6 +94,7 @@ def test_leaves_cover_horizon(dataset, larc_result):
         assert (res.min_clearance_m > 0) == res.certified or not np.isfinite(res.min_clearance_m)
 
 
+@pytest.mark.slow
 def test_fine_certified_implies_larc_certified(dataset, robot, capsules, larc_result):
     fine = certify(*dataset, robot, capsules, method="fine", margin=MARGIN)
     coarse = certify(*dataset, robot, capsules, method="coarse", margin=MARGIN)
@@ -104,6 +107,7 @@ def test_fine_certified_implies_larc_certified(dataset, robot, capsules, larc_re
     assert sum(r.evaluations for r in larc_result) < sum(r.evaluations for r in fine)
 
 
+@pytest.mark.slow
 def test_soundness_against_dense_sampling(robot, capsules):
     """Whenever LARC certifies, the sampled (10 kHz) capsule-box distance stays above rho.
     Includes near misses: a box is moved so the swept capsules pass within a few mm of rho."""
@@ -136,6 +140,7 @@ def test_soundness_against_dense_sampling(robot, capsules):
     assert checked >= 4 and near >= 8
 
 
+@pytest.mark.slow
 def test_interval_kernel_matches_reference(dataset, robot, capsules):
     trajs, scenes = dataset
     rng = np.random.default_rng(5)
@@ -181,6 +186,7 @@ def test_zero_speed_trajectory_has_zero_inflation(robot, capsules):
     assert res.min_clearance_m == pytest.approx(g_exact, abs=1e-12)  # b = 0 at zero speed
 
 
+@pytest.mark.slow
 def test_nan_never_certifies(robot, capsules):
     q = np.zeros((2, 6)) + np.array([0, 1.0, -1.0, 0, 0, 0])
     q[1, 2] = np.nan
@@ -197,6 +203,7 @@ def test_nan_never_certifies(robot, capsules):
     assert math.isnan(float(g)) and not float(g) > 0
 
 
+@pytest.mark.slow
 def test_float32_is_conservative(dataset, robot, capsules, larc_result):
     trajs, scenes = dataset
     r32 = certify(trajs[:60], scenes[:60], robot, capsules, method="larc", dtype=np.float32)

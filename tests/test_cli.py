@@ -56,6 +56,7 @@ def test_certified_exit_0_and_json(files):
     assert t["min_clearance_m"] > 0
 
 
+@pytest.mark.slow
 def test_uncertified_exit_1_names_blocking_pair(files):
     p = run_larc("certify", "reach.yaml", "--scene", "near.yaml", "--json", "out.json", cwd=files)
     assert p.returncode == 1, p.stderr
@@ -134,6 +135,7 @@ def check_cover(leaves: pd.DataFrame, horizon: dict[str, tuple[float, float]]):
         assert (lv["depth"] <= 9).all()
 
 
+@pytest.mark.slow
 def test_leaves_parquet_and_csv_cover_the_horizon(tmp_path, capsys):
     rc, out, _ = larc(capsys, "certify", OK, BLOCKED, "--scene", CELL, "--json", tmp_path / "r.json",
                       "--leaves", tmp_path / "leaves.parquet")
@@ -170,6 +172,7 @@ def test_leaves_bad_suffix_or_no_pyarrow_is_bad_input(tmp_path, capsys, monkeypa
     assert not (tmp_path / "l.parquet").exists()
 
 
+@pytest.mark.slow
 def test_exit_codes_and_fail_on_uncertified(tmp_path, capsys):
     assert larc(capsys, "certify", OK, "--scene", CELL)[0] == 0
     assert larc(capsys, "certify", OK, BLOCKED, "--scene", CELL)[0] == 1
@@ -193,6 +196,7 @@ def test_internal_error_is_exit_3_not_1(capsys, monkeypatch):
     assert rc == 3 and "simulated bug" in err and "internal error" in err
 
 
+@pytest.mark.slow
 def test_table_is_aligned(capsys):
     rc, out, _ = larc(capsys, "certify", OK, BLOCKED, "--scene", CELL)
     head, ok, blocked, summary = out.splitlines()
@@ -252,6 +256,7 @@ def test_fit_capsules_progress(tmp_path, capsys, piper_dir):
     assert "containment proven" in out and (tmp_path / "robot.yaml").exists()
 
 
+@pytest.mark.slow
 def test_explain_writes_png_of_the_blocking_interval(tmp_path, capsys):
     rc, out, err = larc(capsys, "explain", BLOCKED, "--scene", CELL, "-o", tmp_path / "why.png")
     assert rc == 0, err
@@ -273,6 +278,7 @@ def test_explain_bad_input(tmp_path, capsys):
     assert rc == 2 and "outside the horizon" in err and not (tmp_path / "x.png").exists()
 
 
+@pytest.mark.slow
 def test_explain_recomputes_the_interval_test(robot, capsules):
     """The picture's numbers are the certificate's: same g(I), and g = d - (r + rho + b)."""
     import larc_jax as lj

@@ -119,7 +119,7 @@ def write(path: Path, content) -> None:
 def robot_doc(**changes) -> dict:
     from larc_jax.urdf import piper_urdf_path
 
-    doc = yaml.safe_load((ROOT / "configs" / "piper_capsules.yaml").read_text())
+    doc = yaml.safe_load((ROOT / "larc_jax" / "data" / "piper_capsules.yaml").read_text())
     doc = {"urdf": str(piper_urdf_path()), **doc}
     for k, v in changes.items():
         if v is MISSING:
@@ -438,6 +438,7 @@ def test_help_still_exits_0(capsys):
 SUBPROCESS_CASES = ["position-nan", "directory", "margin-nan", "scene-box-inverted", "binary", "robot-urdf-number"]
 
 
+@pytest.mark.slow
 def test_subprocess_bad_inputs_one_line(tmp_path):
     env = dict(os.environ)
     env.setdefault("LARC_PIPER_DESCRIPTION", str(ROOT.parent / "shared" / "robots" / "piper_description"))
@@ -643,6 +644,7 @@ def _run_and_check(tmp: Path, argv: list[str], capsys, fuzzing: bool = True) -> 
     return rc
 
 
+@pytest.mark.slow
 @FUZZ
 @given(data=st.data())
 def test_fuzz_trajectory_and_scene(data, capsys):
@@ -675,6 +677,7 @@ def test_fuzz_trajectory_and_scene(data, capsys):
                              "--max-depth", "3", *args], capsys)
 
 
+@pytest.mark.slow
 @settings(FUZZ, max_examples=max(10, FUZZ.max_examples // 5))
 @given(data=st.data())
 def test_fuzz_robot_file(data, capsys):

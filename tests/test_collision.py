@@ -12,6 +12,7 @@ pytest.importorskip("fcl")
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ("open", "easy_window", "medium_window", "easy_shelf")
+ALLOWED = ROOT / "larc_jax" / "data" / "piper_allowed_collisions.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +85,7 @@ def _triangles_hit_box(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
     return bool((~sep).any())
 
 
+@pytest.mark.slow
 def test_fcl_agrees_with_independent_check(model, robot):
     """FCL mesh-vs-box agrees with an exact NumPy triangle/box separating-axis test on random
     boxes near random poses; and a mesh vertex inside a box always means a hit."""
@@ -122,7 +124,7 @@ def test_states_in_collision_matches_single_queries(model, robot):
 def test_self_collision_and_allowed_pairs(model, robot):
     from experiments.self_collision import adjacent_pairs, load_allowed_pairs
 
-    allowed = load_allowed_pairs(ROOT / "configs" / "piper_allowed_collisions.yaml", robot)
+    allowed = load_allowed_pairs(ALLOWED, robot)
     q0 = np.zeros(6)
     assert not model.self_collision(q0, allowed)
     # With nothing allowed, touching neighbours (and the closed fingers) collide.
@@ -147,7 +149,7 @@ def test_self_collision_and_allowed_pairs(model, robot):
 def test_allowed_file_has_adjacent_pairs_and_matches_urdf(robot, model, tmp_path):
     from experiments.self_collision import adjacent_pairs, load_allowed_file, load_allowed_pairs
 
-    path = ROOT / "configs" / "piper_allowed_collisions.yaml"
+    path = ALLOWED
     doc = load_allowed_file(path, robot)
     assert doc["urdf_sha256"] == robot.urdf_sha256
     assert doc["n_samples"] >= 10_000 and isinstance(doc["seed"], int)
@@ -173,9 +175,10 @@ def test_allowed_file_has_adjacent_pairs_and_matches_urdf(robot, model, tmp_path
 
 @pytest.mark.parametrize("scene", SCENES)
 def test_scene_files(scene, model, robot):
-    from experiments.collision import load_scene_boxes
+    from experiments.collision import SceneBoxes
 
-    names, lo, hi = load_scene_boxes(ROOT / "configs" / "scenes" / f"{scene}.yaml")
+    boxes = SceneBoxes.from_file(ROOT / "configs" / "scenes" / f"{scene}.yaml")
+    names, lo, hi = boxes.names, boxes.lo, boxes.hi
     assert lo.shape == hi.shape == (len(names), 3)
     assert (hi >= lo).all()
     if scene == "open":
@@ -190,13 +193,21 @@ def test_scene_files(scene, model, robot):
             assert link not in ("base_link", "link1")
 
 
-def test_load_scene_boxes_rejects_bad_files(tmp_path):
-    from experiments.collision import load_scene_boxes
+def test_audit_scene_reader_is_the_librarys(tmp_path):
+    """The audit reads scenes with the library's reader: same errors, same boxes (also .scene)."""
+    from experiments.collision import SceneBoxes
+    from larc_jax.errors import LarcInputError
+    from larc_jax.scene import read_scene
 
     p = tmp_path / "s.yaml"
     p.write_text("frame: base_link\nboxes:\n  - {name: a, min: [0, 0, 1], max: [1, 1, 0]}\n")
-    with pytest.raises(ValueError, match="min > max"):
-        load_scene_boxes(p)
+    with pytest.raises(LarcInputError, match=r"boxes\[0\]"):
+        SceneBoxes.from_file(p)
     p.write_text("frame: world\nboxes: []\n")
-    with pytest.raises(ValueError, match="frame"):
-        load_scene_boxes(p)
+    with pytest.raises(LarcInputError, match="frame"):
+        SceneBoxes.from_file(p)
+    pick = ROOT / "configs" / "examples" / "pick.scene"
+    boxes, scene = SceneBoxes.from_file(pick), read_scene(pick)
+    np.testing.assert_array_equal(boxes.lo, scene.lo)
+    np.testing.assert_array_equal(boxes.hi, scene.hi)
+    assert boxes.names == scene.box_names

@@ -112,6 +112,7 @@ def test_evaluate_interpolates_knots():
             np.testing.assert_array_equal(np.asarray(_evaluate_jit(sp, t[-1])[0]), q[-1])
 
 
+@pytest.mark.slow
 def test_evaluate_matches_scipy():
     rng = np.random.default_rng(2)
     ev = jax.jit(jax.vmap(evaluate, in_axes=(None, 0)))
@@ -179,6 +180,7 @@ def test_speed_table_definition():
 # ------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_speed_max_matches_reference_1000_cases():
     rng = np.random.default_rng(5)
     n_cases = 0
@@ -213,6 +215,7 @@ def test_speed_max_matches_reference_1000_cases():
     assert kinds_seen == set(KINDS)
 
 
+@pytest.mark.slow
 def test_speed_max_never_below_dense_sampling_and_tight():
     rng = np.random.default_rng(6)
     with jax.enable_x64(True):
@@ -403,6 +406,7 @@ def test_pad_waypoints_layout():
         pad_waypoints(t, q, v, 3)
 
 
+@pytest.mark.slow
 def test_padding_does_not_change_speed_max():
     rng = np.random.default_rng(10)
     with jax.enable_x64(True):
@@ -458,6 +462,7 @@ def test_shape_validation():
 # ------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_batched_jit_vmap_matches_per_item():
     rng = np.random.default_rng(12)
     Ks = (1, 3, 8, 20, 33, 2)

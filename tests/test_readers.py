@@ -71,6 +71,18 @@ def _corners(center, rot, size):
     return np.array([center + rot @ (half * s) for s in itertools.product([-1, 1], repeat=3)])
 
 
+def test_rotated_box_warning_prints_corners_rounded_outwards(tmp_path, caplog):
+    """A corner on z = 0 comes out of the padded AABB a hair below zero: the warning prints it
+    as 0.0000, never '-0.0000'."""
+    text = NEW_LAYOUT.replace("0.5 0 -0.05\n0 0 0 1\n1", "0.5 0 0.01\n0 0 0.7071068 0.7071068\n1")
+    with caplog.at_level(logging.WARNING):
+        scene = read_moveit_scene(_write(tmp_path, "rot.scene", text))
+    (rec,) = [r for r in caplog.records if "rotated" in r.getMessage()]
+    msg = rec.getMessage()
+    assert scene.lo[0, 2] < 0.0 and "-0.0000" not in msg, msg
+    assert "[0.2000, -0.2000, 0.0000] .. [0.8000, 0.2000, 0.0200]" in msg, msg
+
+
 def test_example_scene_rotated_box_enclosed_and_warned(caplog):
     with caplog.at_level(logging.WARNING, logger="larc_jax.scene"):
         scene = read_scene(EXAMPLES / "pick.scene")
@@ -365,6 +377,7 @@ def test_trajectory_from_msg_unwraps_robot_trajectory():
 # --------------------------------------------------------------------------------------------
 # Command line (in-process)
 
+@pytest.mark.slow
 def test_cli_formats_and_exit_codes(tmp_path, capsys):
     from larc_jax.cli import main
 

@@ -48,6 +48,7 @@ def test_readme_has_command_line_examples():
         assert needle in text, needle
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("line,block", SH_BLOCKS, ids=[f"README.md:{n}" for n, _ in SH_BLOCKS])
 def test_readme_sh_example_runs(tmp_path, line, block):
     shutil.copytree(ROOT / "configs", tmp_path / "configs")
@@ -60,3 +61,68 @@ def test_readme_sh_example_runs(tmp_path, line, block):
         f"--- stdout:\n{p.stdout}\n--- stderr:\n{p.stderr}"
     )
     assert "Traceback" not in p.stderr, p.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# The Quick start commands, .ci/run, and the generated Stage B summary
+# ----------------------------------------------------------------------------------------------
+
+
+def _ci_command(name: str) -> str:
+    p = subprocess.run([sys.executable, str(ROOT / ".ci" / "readme_command.py"), name], capture_output=True,
+                       text=True)
+    assert p.returncode == 0, p.stderr
+    return p.stdout.rstrip("\n")
+
+
+def test_ci_runs_the_readme_quick_start_verbatim():
+    """.ci/run takes its commands from README.md (so they cannot drift apart): the test command
+    and the main job, with the relative LARC_PIPER_DESCRIPTION a new user types."""
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert "run_readme_command tests" in ci and "run_readme_command main-job" in ci
+    assert "git status --porcelain" in ci
+    bash = [b.strip() for _, b in _blocks("bash")]
+    for name in ("main-job", "tests", "fast-tests"):
+        cmd = _ci_command(name)
+        assert cmd in bash and cmd.startswith("python3 -m venv .venv && .venv/bin/pip install -q -e '.[dev]' && ")
+        assert "LARC_PIPER_DESCRIPTION=../shared/robots/piper_description " in cmd
+    assert _ci_command("tests").endswith("-m pytest -q")
+    assert _ci_command("fast-tests").endswith('-m pytest -q -m "not slow"')
+    assert _ci_command("main-job").endswith("-m experiments.stageB")
+
+
+def test_relative_piper_path_works_from_any_folder(tmp_path):
+    """conftest made a relative LARC_PIPER_DESCRIPTION absolute, so larc in another folder finds PIPER."""
+    assert Path(os.environ["LARC_PIPER_DESCRIPTION"]).is_absolute()
+    env = dict(os.environ, LARC_PIPER_DESCRIPTION=os.path.relpath(os.environ["LARC_PIPER_DESCRIPTION"], ROOT))
+    code = ("import os, sys; sys.path.insert(0, 'tests'); import conftest; "
+            "print(os.environ['LARC_PIPER_DESCRIPTION'])")
+    p = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == os.environ["LARC_PIPER_DESCRIPTION"]
+
+
+def test_stageB_summary_is_the_generated_one():
+    """The README's Stage B section is results/stageB/summary.md, which the tables stage writes
+    (every number in it comes from the committed results)."""
+    from experiments.stageB_report import SUMMARY_BEGIN, SUMMARY_END
+
+    summary = (ROOT / "results" / "stageB" / "summary.md").read_text()
+    i, j = README.index(SUMMARY_BEGIN) + len(SUMMARY_BEGIN), README.index(SUMMARY_END)
+    assert README[i:j].strip() == summary.strip()
+
+
+def test_cold_start_figures_are_the_generated_ones():
+    """The README's cold-start table quotes results/bench/coldstart_cpu.json."""
+    import json
+
+    doc = json.loads((ROOT / "results" / "bench" / "coldstart_cpu.json").read_text())
+    section = README[README.index("### Cold start"):README.index("## Code map")]
+    for key, label in (("first_ever", "first ever"), ("warm_cache", "second and later"),
+                       ("no_cache", "`--no-compile-cache`")):
+        row = next(line for line in section.splitlines() if line.startswith(f"| {label}"))
+        r = doc[key]
+        cells = [f"{r[k]:.2f} s" for k in ("wall_s", "robot_s", "compile_s", "run_s")]
+        assert row.split(" | ")[1:] == cells[:-1] + [cells[-1] + " |"], row
+    assert f"{doc['import_s']:.2f} s" in section
+    assert f"load average {doc['machine']['load_average_before'][0]:.2f}" in section

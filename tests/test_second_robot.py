@@ -141,6 +141,7 @@ def test_fk_matches_yourdfpy(kinova, share):
     assert worst < 1e-9, worst
 
 
+@pytest.mark.slow
 def test_far_box_certified_and_sampling_agrees(kinova):
     out, robot, capsules = kinova
     rc = larc(["-q", "certify", str(out / "reach.yaml"), "--scene", str(out / "crate.yaml"),
@@ -159,6 +160,7 @@ def test_far_box_certified_and_sampling_agrees(kinova):
     assert worst > MARGIN, worst
 
 
+@pytest.mark.slow
 def test_box_in_the_sweep_is_not_certified_and_the_mesh_touches_it(kinova, tmp_path):
     out, robot, _ = kinova
     rc = larc(["-q", "certify", str(out / "reach.yaml"), "--scene", str(out / "block.yaml"),

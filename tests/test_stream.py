@@ -43,6 +43,7 @@ def small_dataset(robot):
     return trajs, scenes
 
 
+@pytest.mark.slow
 def test_stream_equals_one_call(small_dataset, robot, capsules):
     trajs, scenes = small_dataset
     whole = lj.certify(trajs, scenes, robot, capsules, max_depth=6)
@@ -83,6 +84,7 @@ def write_manifest(tmp: Path, trajs, scenes, bad_rows=()) -> Path:
     return tmp / "m.csv"
 
 
+@pytest.mark.slow
 def test_manifest_cli_matches_certify_and_resumes(tmp_path, small_dataset, robot, capsules, capsys, monkeypatch):
     trajs, scenes = small_dataset
     manifest = write_manifest(tmp_path, trajs, scenes)
@@ -147,6 +149,7 @@ def test_manifest_cli_matches_certify_and_resumes(tmp_path, small_dataset, robot
     assert "another run" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_manifest_bad_rows_and_bad_manifests(tmp_path, small_dataset, capsys):
     trajs, scenes = small_dataset
     manifest = write_manifest(tmp_path, trajs[:4], scenes[:4], bad_rows=(2,))
@@ -193,6 +196,7 @@ SHARDED = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_two_devices_give_identical_results(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     p = subprocess.run([sys.executable, "-c", SHARDED.format(root=str(ROOT))], env=env, capture_output=True,

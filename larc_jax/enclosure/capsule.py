@@ -11,11 +11,13 @@ are derived in :mod:`larc_jax.enclosure.motion`.
 from __future__ import annotations
 
 import dataclasses
+from typing import Iterable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import LarcInputError
 from ..robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["CapsuleModel", "capsule_segments", "capsule_segments_np"]
@@ -45,10 +47,50 @@ class CapsuleModel:
     link_index: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
     """Robot link index carrying each capsule."""
     padding_m: float = dataclasses.field(metadata=dict(static=True))
+    excluded_links: tuple[str, ...] = dataclasses.field(default=(), metadata=dict(static=True))
+    """Links whose capsules were removed (:meth:`without_links`): the certificate says nothing
+    about them, and every result made with this model names them."""
 
     @property
     def n_capsules(self) -> int:
         return len(self.names)
+
+    def without_links(self, robot: Robot, links: Iterable[str], what: str = "ignore_links") -> "CapsuleModel":
+        """This model without the capsules of ``links``, recorded in :attr:`excluded_links`.
+
+        For a link that never moves and may touch the scene by design, e.g. a fixed base standing
+        on its table (MoveIt's allowed collision matrix does the same for scene objects). Only a
+        link with no active joint between it and the root may be excluded: a moving link is
+        refused, as are unknown links, links without a capsule, and removing every capsule
+        (:class:`LarcInputError` naming ``what``)."""
+        links = list(dict.fromkeys(str(x) for x in links))
+        for name in links:
+            if name not in robot.link_names:
+                raise LarcInputError(f"{what} {name}: not a link of {robot.urdf_path} ({', '.join(robot.link_names)})")
+            i = robot.link_index(name)
+            k = i
+            while k > 0:  # the joints between the root and the link
+                if robot.q_index[k] >= 0:
+                    raise LarcInputError(
+                        f"{what} {name}: the link moves (active joint '{robot.joint_names[k]}' is between it and "
+                        f"the root); only links that never move can be left out of a certificate")
+                k = robot.parent[k]
+            if name not in self.link_names:
+                raise LarcInputError(f"{what} {name}: the link has no capsule in this model")
+        keep = [c for c, name in enumerate(self.link_names) if name not in links]
+        if not keep:
+            raise LarcInputError(f"{what}: excluding {', '.join(links)} leaves no capsule to certify")
+        if not links:
+            return self
+        sel = np.asarray(keep)
+        return dataclasses.replace(
+            self,
+            p_link_a=np.asarray(self.p_link_a)[sel], p_link_b=np.asarray(self.p_link_b)[sel],
+            radius=np.asarray(self.radius)[sel], motion_a=np.asarray(self.motion_a)[sel],
+            names=tuple(self.names[c] for c in keep), link_names=tuple(self.link_names[c] for c in keep),
+            link_index=tuple(self.link_index[c] for c in keep),
+            excluded_links=tuple(dict.fromkeys(self.excluded_links + tuple(links))),
+        )
 
 
 def capsule_segments(robot: Robot, capsules: CapsuleModel, q: jax.Array):

@@ -33,7 +33,8 @@ from ..errors import LarcInputError
 from ..robot import JointType, Robot
 from ..urdf import file_sha256, load_urdf_model, resolve_uri
 
-__all__ = ["link_elements", "robot_urdf_model", "joint_limits", "collision_geometry", "links_with_geometry"]
+__all__ = ["link_elements", "link_collisions", "robot_urdf_model", "joint_limits", "collision_geometry",
+           "links_with_geometry"]
 
 
 def _circumscribed_sphere_vertices(radius: float) -> np.ndarray:
@@ -127,6 +128,24 @@ def _collisions(robot: Robot, link: str):
     return out
 
 
+def link_collisions(robot: Robot, link: str) -> list[tuple[np.ndarray, object, tuple | None]]:
+    """The ``<collision>`` elements of ``link``: ``(T_link_geometry, geometry, mesh)`` each, with
+    ``T_link_geometry`` the (4, 4) collision origin, ``geometry`` the URDF geometry (yourdfpy:
+    ``.box``, ``.sphere``, ``.cylinder``, ``.mesh``) and ``mesh`` the ``(vertices (V, 3), faces
+    (F, 3))`` of a mesh in the geometry frame, COLLADA units and the URDF ``scale`` applied
+    (``None`` for a primitive). The one mesh loader of the project: the capsule fit and the FCL
+    audit of the experiments see the same geometry."""
+    out = []
+    for origin, geom, path in _collisions(robot, link):
+        mesh = None
+        if path is not None:
+            v, faces = _mesh_cached(_file_stamp(path), link)
+            scale = np.asarray(geom.mesh.scale if geom.mesh.scale is not None else 1.0, float)
+            mesh = (v * scale, faces)
+        out.append((origin, geom, mesh))
+    return out
+
+
 def link_elements(robot: Robot, link: str) -> np.ndarray:
     """Collision elements of ``link`` in its own frame: (E, P, 3) vertex sets, float64.
 
@@ -134,16 +153,10 @@ def link_elements(robot: Robot, link: str) -> np.ndarray:
     (non-active) prismatic joint, every element also carries its copies shifted to both stroke
     ends (see module docstring), so P is tripled.
     """
-    model = robot_urdf_model(robot)
     i = robot.link_index(link)
     groups: list[np.ndarray] = []
-    for origin, geom, path in _collisions(robot, link):
-        if path is not None:
-            v, faces = _mesh_cached(_file_stamp(path), link)
-            scale = np.asarray(geom.mesh.scale if geom.mesh.scale is not None else 1.0, float)
-            elems = (v * scale)[faces]  # (F, 3, 3)
-        else:
-            elems = _primitive_vertices(geom)[None]
+    for origin, geom, mesh in link_collisions(robot, link):
+        elems = mesh[0][mesh[1]] if mesh is not None else _primitive_vertices(geom)[None]  # (E, P, 3)
         elems = elems @ origin[:3, :3].T + origin[:3, 3]
         if groups and groups[0].shape[1] != elems.shape[1]:
             # Mixed element sizes: pad by repeating the first vertex (same hull, same test).
@@ -155,7 +168,7 @@ def link_elements(robot: Robot, link: str) -> np.ndarray:
         return np.zeros((0, 3, 3))
     elems = np.concatenate(groups)
     if robot.q_index[i] < 0 and robot.joint_type[i] == JointType.PRISMATIC:
-        lo, hi = joint_limits(model, robot.joint_names[i])
+        lo, hi = joint_limits(robot_urdf_model(robot), robot.joint_names[i])
         ax = np.asarray(robot.axis[i], float)
         held = float(robot.q_held[i])
         elems = np.concatenate(

@@ -40,8 +40,10 @@ MODEL_REVISION = "larc-capsules-2"
 
 
 def default_capsule_path() -> Path:
-    """``configs/piper_capsules.yaml`` of this project checkout."""
-    return Path(__file__).resolve().parent.parent.parent / "configs" / "piper_capsules.yaml"
+    """PIPER's capsule file, shipped with the package (``larc_jax/data/piper_capsules.yaml``)."""
+    from ..data import PIPER_CAPSULES, data_path
+
+    return data_path(PIPER_CAPSULES)
 
 
 def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[FittedCapsule], *,
@@ -161,7 +163,9 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
 
     Fails with :class:`LarcInputError` if the file was fitted to another URDF or to other
     collision geometry (hash mismatch), leaves a link with collision geometry uncovered, names
-    unknown links, or holds malformed numbers.
+    unknown links, or holds malformed numbers. The optional field ``ignored_links: [LINK,
+    ...]`` leaves those links out of the certificate (:meth:`CapsuleModel.without_links`: only
+    links that never move, e.g. a base standing on its table).
     """
     path = Path(path)
     source = str(path)
@@ -231,8 +235,11 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
         B.append(_vec3(_field(e, "b", source, where + "."), source, where + ".b"))
         R.append(float(r))
     _check_coverage(links, robot, source)
+    ignored = doc.get("ignored_links") or []
+    if not isinstance(ignored, list) or not all(isinstance(x, str) for x in ignored):
+        raise LarcInputError(f"{source}: ignored_links must be a list of link names, got {short_repr(ignored)}")
     A, B, R = np.array(A), np.array(B), np.array(R)
-    return CapsuleModel(
+    model = CapsuleModel(
         p_link_a=A,
         p_link_b=B,
         radius=R,
@@ -242,6 +249,7 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
         link_index=tuple(idx),
         padding_m=padding,
     )
+    return model.without_links(robot, ignored, what=f"{source}: ignored_links:")
 
 
 def load_robot_file(path: str | Path | None = None) -> tuple[Robot, CapsuleModel]:

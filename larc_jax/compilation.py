@@ -1,0 +1,267 @@
+"""JAX compilation: the persistent compilation cache, and how long compiling took.
+
+Every ``certify`` call runs jitted kernels whose shapes depend on the dataset (waypoint, box and
+frontier size classes, :mod:`larc_jax.batch`); each new shape is traced, lowered and compiled by
+XLA, seconds each on a CPU. JAX's *persistent compilation cache* keeps the compiled executables
+on disk, so a later process loads them instead of compiling again (it still traces and lowers,
+which computes the cache key).
+
+* The ``larc`` command line turns the cache on by default in :func:`default_cache_dir`
+  (``$XDG_CACHE_HOME/larc_jax/jax`` or ``~/.cache/larc_jax/jax``); ``--no-compile-cache`` or
+  ``LARC_COMPILE_CACHE=0`` turn it off, ``LARC_COMPILE_CACHE=/some/dir`` moves it.
+* The library never changes ``jax.config`` by itself (importing it flips nothing): Python
+  users opt in with :func:`enable_compile_cache`, which sets JAX's global cache options (the
+  cache directory, and thresholds of zero so that even small kernels are kept).
+* With the cache on, the interval kernel is also kept *traced*: the first call of each kernel
+  shape exports it (:mod:`jax.export`, the traced and lowered StableHLO) into the cache folder,
+  and later processes load that instead of tracing the Python code again
+  (:func:`cached_kernel_call`; tracing costs about as much as loading the compiled kernel).
+  An export is keyed by the SHA-256 of every source file of ``larc_jax``, the JAX and jaxlib
+  versions, the backend, the x64 mode, and the call's static structure and argument shapes, so a
+  changed library, JAX or argument never meets a stale kernel.
+* With the cache on, :func:`larc_jax.urdf.load_robot` also keeps the robot model it builds
+  (arrays and static structure, :func:`cached_robot` / :func:`keep_robot`), keyed by the same
+  library hash, the URDF's SHA-256 and the loader's arguments: a later process skips parsing the
+  URDF and importing its parser (yourdfpy, trimesh). The mesh files the URDF names are still
+  checked to exist.
+* :class:`CompileClock` measures, while active, the seconds JAX spends tracing, lowering and
+  compiling (or loading from the cache), from :mod:`jax.monitoring` events; ``certify`` reports
+  them as :attr:`larc_jax.results.DatasetResult.compile_time_s`, separately from the run time.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import threading
+from pathlib import Path
+
+__all__ = ["CACHE_ENV", "default_cache_dir", "cache_dir_from_env", "enable_compile_cache", "cached_kernel_call",
+           "cached_robot", "keep_robot", "CompileClock"]
+
+CACHE_ENV = "LARC_COMPILE_CACHE"
+"""Environment variable: ``0`` / ``false`` / ``off`` / ``no`` turn the command line's cache off; a
+path puts it there."""
+
+_OFF = {"0", "false", "off", "no"}
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/larc_jax/jax``, else ``~/.cache/larc_jax/jax``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "larc_jax" / "jax"
+
+
+def cache_dir_from_env() -> Path | None:
+    """The cache folder ``LARC_COMPILE_CACHE`` asks for: ``None`` when it turns the cache off,
+    the path it names, or :func:`default_cache_dir` when it is unset or empty."""
+    value = os.environ.get(CACHE_ENV, "").strip()
+    if value.lower() in _OFF:
+        return None
+    return Path(value).expanduser() if value else default_cache_dir()
+
+
+def enable_compile_cache(path: str | os.PathLike | None = None) -> Path:
+    """Turn on JAX's persistent compilation cache in ``path`` (default
+    :func:`default_cache_dir`) for this process, keeping every compiled kernel however small or
+    quick to compile. This changes JAX's global configuration (it is an explicit opt-in; the
+    library never calls it by itself). Returns the folder."""
+    import jax
+
+    folder = Path(path).expanduser() if path is not None else default_cache_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # no size threshold
+    jax.config.update("jax_enable_compilation_cache", True)
+    global _EXPORT_DIR
+    _EXPORT_DIR = folder / "exported"
+    return folder
+
+
+_EXPORT_DIR: Path | None = None
+"""Where traced kernels are kept (set by :func:`enable_compile_cache`; None: not kept)."""
+_LOADED: dict = {}
+"""Kernel key → jitted call of its export, for this process."""
+
+
+@functools.lru_cache(maxsize=1)
+def _library_hash() -> str:
+    """SHA-256 of every source file of the package (any change gives new kernel keys)."""
+    import jax
+    import jaxlib
+
+    h = hashlib.sha256(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
+    root = Path(__file__).resolve().parent
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def cached_kernel_call(fn, args: tuple):
+    """``fn(*args)`` for a jitted ``fn`` returning a tuple of arrays; with the cache on
+    (:func:`enable_compile_cache`), through its :mod:`jax.export` kept in the cache folder, so a
+    process that finds the export skips tracing ``fn``. Same computation, same results."""
+    if _EXPORT_DIR is None:
+        return fn(*args)
+    import jax
+    import numpy as np
+
+    leaves, treedef = jax.tree.flatten(args)
+    avals = [jax.ShapeDtypeStruct(np.shape(x), np.result_type(getattr(x, "dtype", x))) for x in leaves]
+    key = hashlib.sha256("\0".join([_library_hash(), fn.__name__, str(jax.config.jax_enable_x64), str(treedef),
+                                     repr([(a.shape, str(a.dtype)) for a in avals])]).encode()).hexdigest()
+    call = _LOADED.get(key)
+    if call is None:
+        call = _LOADED[key] = _load_or_export(fn, treedef, avals, _EXPORT_DIR / f"{fn.__name__}-{key[:40]}.jaxexport")
+    return call(*leaves)
+
+
+def _load_or_export(fn, treedef, avals, path: Path):
+    import jax
+
+    from .io import atomic_write_bytes
+
+    try:
+        exported = jax.export.deserialize(bytearray(path.read_bytes()))
+    except Exception:  # noqa: BLE001 - missing, unreadable or from another version: export again
+        def flat(*leaves):
+            return fn(*jax.tree.unflatten(treedef, leaves))
+
+        exported = jax.export.export(jax.jit(flat))(*avals)
+        try:
+            atomic_write_bytes(path, bytes(exported.serialize()))
+        except OSError:  # an unwritable cache only costs the next process a trace
+            pass
+    return jax.jit(exported.call)
+
+
+def _robot_path(key_parts: dict) -> Path | None:
+    if _EXPORT_DIR is None:
+        return None
+    import json
+
+    key = hashlib.sha256((_library_hash() + json.dumps(key_parts, sort_keys=True, default=str)).encode()).hexdigest()
+    return _EXPORT_DIR.parent / "robots" / f"{key[:40]}.npz"
+
+
+def cached_robot(key_parts: dict):
+    """The :class:`~larc_jax.robot.Robot` kept by :func:`keep_robot` for these loader inputs
+    (which must include the URDF's SHA-256), or None (cache off, not kept yet, unreadable, or a
+    mesh file it names has gone)."""
+    path = _robot_path(key_parts)
+    if path is None or not path.is_file():
+        return None
+    import json
+
+    import numpy as np
+
+    from .robot import JointType, Robot
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: np.array(z[k]) for k in ("T_parent_joint", "axis", "q_held", "q_lower", "q_upper")}
+    except Exception:  # noqa: BLE001 - unreadable: build the robot again
+        return None
+    if not all(Path(m).is_file() for m in meta.pop("meshes")):
+        return None  # let the loader name the missing file
+    meta = {k: tuple(tuple(x) if isinstance(x, list) else x for x in v) if isinstance(v, list) else v
+            for k, v in meta.items()}
+    meta["joint_type"] = tuple(JointType(t) for t in meta["joint_type"])
+    return Robot(**arrays, **meta)
+
+
+def keep_robot(key_parts: dict, robot, meshes) -> None:
+    """Keep ``robot`` (built from ``key_parts``) for :func:`cached_robot`; ``meshes`` are the
+    mesh files its URDF names."""
+    path = _robot_path(key_parts)
+    if path is None:
+        return
+    import dataclasses
+    import io
+    import json
+
+    import numpy as np
+
+    from .io import atomic_write_bytes
+
+    meta = {f.name: getattr(robot, f.name) for f in dataclasses.fields(robot) if f.metadata.get("static")}
+    meta["joint_type"] = [int(t) for t in meta["joint_type"]]
+    meta["meshes"] = [str(m) for m in meshes]
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.array(json.dumps(meta)), **{k: np.asarray(getattr(robot, k)) for k in (
+        "T_parent_joint", "axis", "q_held", "q_lower", "q_upper")})
+    try:
+        atomic_write_bytes(path, buf.getvalue())
+    except OSError:
+        pass
+
+
+_TRACE = "/jax/core/compile/jaxpr_trace_duration"
+_LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_COMPILE = "/jax/core/compile/backend_compile_duration"  # XLA compile, or load from the cache
+_CACHE_HIT = "/jax/compilation_cache/cache_hits"
+
+
+class CompileClock:
+    """While active (``with CompileClock() as clock:``), counts what JAX compiles in this
+    process: ``compiles`` (executables compiled or loaded from the persistent cache),
+    ``cache_hits`` (of those, loaded), and seconds spent ``trace_s``, ``lower_s`` and
+    ``compile_s`` (XLA compilation or cache load); ``seconds`` is their sum.
+
+    One :mod:`jax.monitoring` listener, installed on first use, feeds every active clock (JAX
+    cannot remove a listener in every version). Nested and concurrent clocks all count.
+    """
+
+    _active: list["CompileClock"] = []
+    _lock = threading.Lock()
+    _installed = False
+
+    def __init__(self):
+        self.compiles = 0
+        self.cache_hits = 0
+        self.trace_s = 0.0
+        self.lower_s = 0.0
+        self.compile_s = 0.0
+
+    @property
+    def seconds(self) -> float:
+        return self.trace_s + self.lower_s + self.compile_s
+
+    @classmethod
+    def _install(cls) -> None:
+        with cls._lock:
+            if cls._installed:
+                return
+            import jax.monitoring
+
+            def on_duration(event: str, duration: float, **kwargs) -> None:
+                field = {_TRACE: "trace_s", _LOWER: "lower_s", _COMPILE: "compile_s"}.get(event)
+                if field is None:
+                    return
+                for clock in list(cls._active):
+                    setattr(clock, field, getattr(clock, field) + float(duration))
+                    if event == _COMPILE:
+                        clock.compiles += 1
+
+            def on_event(event: str, **kwargs) -> None:
+                if event == _CACHE_HIT:
+                    for clock in list(cls._active):
+                        clock.cache_hits += 1
+
+            jax.monitoring.register_event_duration_secs_listener(on_duration)
+            jax.monitoring.register_event_listener(on_event)
+            cls._installed = True
+
+    def __enter__(self) -> "CompileClock":
+        self._install()
+        with self._lock:
+            self._active.append(self)
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        with self._lock:
+            self._active.remove(self)
+        return False

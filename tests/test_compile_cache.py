@@ -1,0 +1,166 @@
+"""Compilation: the persistent cache of the command line (on by default, off by flag or
+environment), compile time reported as such, and a library that flips no global JAX option."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
+ARGS = ["certify", str(EXAMPLES / "reach_left.yaml"), "--scene", str(EXAMPLES / "cell.yaml"), "--max-depth", "4"]
+
+
+def run(tmp_path, *args, **env):
+    e = dict(os.environ, **env)
+    return subprocess.run([sys.executable, "-m", "larc_jax.cli", *args], cwd=tmp_path, env=e, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_help_has_no_raw_rest_markup():
+    for sub in ([], ["certify"], ["explain"], ["fit-capsules"]):
+        p = subprocess.run([sys.executable, "-m", "larc_jax.cli", *sub, "--help"], capture_output=True, text=True)
+        assert p.returncode == 0 and "`" not in p.stdout, p.stdout
+
+
+@pytest.mark.slow
+def test_cache_is_filled_then_used_and_compiling_is_shown(tmp_path):
+    cache = tmp_path / "cache"
+    p = run(tmp_path, "-v", "--progress", *ARGS, "--json", "first.json", LARC_COMPILE_CACHE=str(cache))
+    assert p.returncode == 0, p.stderr
+    assert "compiling kernels" in p.stderr  # the progress bar says so while JAX compiles
+    assert f"compilation cache: {cache}" in p.stderr
+    entries = list(cache.iterdir())
+    assert entries, "nothing was written to the compilation cache"
+    first = json.loads((tmp_path / "first.json").read_text())
+    assert 0 < first["compile_time_s"] <= first["wall_time_s"]
+    assert "compiling" in p.stdout  # the summary line separates compile time
+    p = run(tmp_path, "-v", *ARGS, "--leaves", "warm.csv", LARC_COMPILE_CACHE=str(cache))
+    assert p.returncode == 0, p.stderr
+    line = next(x for x in p.stderr.splitlines() if "kernels:" in x)
+    n, hits = (int(w) for w in line.split("kernels: ")[1].replace(",", "").split()[:5:4])
+    assert n > 0 and hits == n, line  # every kernel came from the cache
+    assert sorted(cache.iterdir()) == sorted(entries)
+    assert list((cache / "exported").glob("*.jaxexport")) and list((cache / "robots").glob("*.npz"))
+    # Loaded kernels compute exactly what freshly traced ones do.
+    p = run(tmp_path, "--no-compile-cache", *ARGS, "--leaves", "cold.csv", LARC_COMPILE_CACHE="")
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "warm.csv").read_bytes() == (tmp_path / "cold.csv").read_bytes()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["env", "flag"])
+def test_cache_can_be_turned_off(tmp_path, how):
+    xdg = tmp_path / "xdg"
+    if how == "env":
+        p = run(tmp_path, "-v", *ARGS, LARC_COMPILE_CACHE="0", XDG_CACHE_HOME=str(xdg))
+    else:
+        p = run(tmp_path, "-v", "--no-compile-cache", *ARGS, LARC_COMPILE_CACHE="", XDG_CACHE_HOME=str(xdg))
+    assert p.returncode == 0, p.stderr
+    assert "compilation cache: off" in p.stderr and not xdg.exists()
+
+
+def test_default_cache_folder_follows_xdg(tmp_path, monkeypatch):
+    from larc_jax.compilation import cache_dir_from_env, default_cache_dir
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.delenv("LARC_COMPILE_CACHE", raising=False)
+    assert default_cache_dir() == tmp_path / "larc_jax" / "jax" == cache_dir_from_env()
+    for off in ("0", "off", "False", "no"):
+        monkeypatch.setenv("LARC_COMPILE_CACHE", off)
+        assert cache_dir_from_env() is None
+    monkeypatch.setenv("LARC_COMPILE_CACHE", str(tmp_path / "c"))
+    assert cache_dir_from_env() == tmp_path / "c"
+
+
+@pytest.mark.slow
+def test_library_flips_no_global_jax_option():
+    code = ("import jax, larc_jax as lj, numpy as np\n"
+            "before = (jax.config.jax_compilation_cache_dir, jax.config.jax_enable_x64)\n"
+            "r = lj.load_robot(); c = lj.load_capsules(lj.default_capsule_path(), r)\n"
+            "t = lj.read_trajectory(%r, r)\n"
+            "lj.certify([t], lj.read_scene(%r), r, c, max_depth=2)\n"
+            "assert (jax.config.jax_compilation_cache_dir, jax.config.jax_enable_x64) == before == (None, False), before\n"
+            "print('ok')\n") % (str(EXAMPLES / "reach_left.yaml"), str(EXAMPLES / "cell.yaml"))
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "ok" in p.stdout, p.stderr
+
+
+def test_enable_compile_cache_is_an_explicit_opt_in(tmp_path):
+    code = ("import jax\nfrom larc_jax.compilation import enable_compile_cache\n"
+            "d = enable_compile_cache(%r)\n"
+            "assert jax.config.jax_compilation_cache_dir == str(d) and d.is_dir()\n"
+            "assert jax.config.jax_persistent_cache_min_compile_time_secs == 0\n"
+            "print('ok')\n") % str(tmp_path / "c")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "ok" in p.stdout, p.stderr
+
+
+def test_exported_kernel_is_the_same_computation(tmp_path, monkeypatch, robot, capsules):
+    """The traced kernel kept in the cache (jax.export) gives bit-identical results to the jitted
+    one, when first exported and when loaded by a later process (simulated: in-memory table
+    cleared)."""
+    import numpy as np
+
+    from larc_jax import batch as B
+    from larc_jax import compilation
+    from larc_jax.interval import trajectory_rounding
+    from larc_jax.scene import read_scene
+    from larc_jax.trajectory_files import read_trajectory
+
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
+    monkeypatch.setattr(compilation, "_LOADED", {})
+    traj = read_trajectory(EXAMPLES / "sweep_front.yaml", robot)
+    scene = read_scene(EXAMPLES / "cell.yaml")
+    rng = np.random.default_rng(3)
+    for caps in (capsules.without_links(robot, ["base_link"]),):
+        bounds = [trajectory_rounding(traj, robot, caps)]
+        b = B.prepare([traj], [scene], robot, caps, 0.01, np.float64, bounds, devices=None)
+        n = 16
+        tr = np.zeros(n, np.int64)
+        depth = rng.integers(0, 8, n)
+        index = np.array([rng.integers(0, 2**d) for d in depth])
+        args = b._kernel_args(tr, *b.endpoints(tr, depth, index))
+        import jax
+
+        with jax.enable_x64(True):
+            ref = [np.asarray(x) for x in B._evaluate_intervals(*args)]
+            first = [np.asarray(x) for x in compilation.cached_kernel_call(B._evaluate_intervals, args)]
+            compilation._LOADED.clear()
+            loaded = [np.asarray(x) for x in compilation.cached_kernel_call(B._evaluate_intervals, args)]
+        for r, f, l in zip(ref, first, loaded):
+            np.testing.assert_array_equal(r, f)
+            np.testing.assert_array_equal(r, l)
+    assert len(list((tmp_path / "exported").glob("*.jaxexport"))) == 1
+
+
+def test_kept_robot_is_the_built_robot(tmp_path, monkeypatch):
+    import dataclasses
+
+    import numpy as np
+
+    from larc_jax import compilation
+    from larc_jax.urdf import load_robot
+
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
+    built = load_robot()
+    (kept,) = (tmp_path / "robots").glob("*.npz")
+    cached = load_robot()
+    assert cached is not built
+    for f in dataclasses.fields(built):
+        x, y = getattr(built, f.name), getattr(cached, f.name)
+        if isinstance(x, np.ndarray) or hasattr(x, "shape"):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+            assert np.asarray(x).dtype == np.asarray(y).dtype
+        else:
+            assert x == y and type(x) is type(y), f.name
+    # Other arguments, another entry; a kept robot whose mesh is gone is not used.
+    load_robot(held_joint_values={"joint7": -0.01})
+    assert len(list((tmp_path / "robots").glob("*.npz"))) == 2
+    key = {"any": "thing"}
+    compilation.keep_robot(key, built, [tmp_path / "gone.stl"])
+    assert compilation.cached_robot(key) is None
