@@ -23,7 +23,9 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
+from .cascade import Links, combine, hull_pair_clearance, interval_pairs, select_pairs
 from .enclosure.capsule import CapsuleModel
+from .enclosure.hull import HullModel
 from .hermite import HermiteSpline, pad_waypoints
 from .interval import coordinate_scale, evaluate_interval, rounding_guard
 from .robot import Robot
@@ -68,6 +70,24 @@ def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, traj
     return jax.vmap(one)(traj, scene, a, b)
 
 
+@jax.jit
+def _interval_pairs(robot, capsules, hulls, splines, box_lo, box_hi, box_mask, traj, scene, a, b, margin):
+    """Step 2 of the cascade (larc_jax.cascade) on F intervals, as ``_evaluate_intervals``."""
+
+    def one(k, s, ai, bi):
+        spline = jax.tree.map(lambda x: x[k], splines)
+        return interval_pairs(robot, capsules, hulls, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin)
+
+    return jax.vmap(one)(traj, scene, a, b)
+
+
+@jax.jit
+def _hull_pairs(hulls, part, T_part, lo, hi, motion_b, margin):
+    """Step 4 of the cascade on T (part, box) pairs."""
+    return jax.vmap(hull_pair_clearance, in_axes=(None, 0, 0, 0, 0, 0, None))(
+        hulls, part, T_part, lo, hi, motion_b, margin)
+
+
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
 
 
@@ -95,6 +115,8 @@ class Batch:
     guard: float
     devices: tuple = ()
     """Devices the interval axis is sharded over (one device: no sharding)."""
+    hulls: HullModel | None = None
+    """Hull parts for the cascade (larc_jax.cascade); None: the capsule test alone."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -110,41 +132,76 @@ class Batch:
         """Interval ends from (trajectory, depth, index): :func:`dyadic_ends`."""
         return dyadic_ends(self.t_start[traj], self.t_end[traj], depth, index)
 
-    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None):
-        """``(a, b, g, capsule, box)`` for every interval (NumPy arrays)."""
-        a, b = self.endpoints(traj, depth, index)
-        if self.dtype == np.float32:  # round outwards so float32 intervals still cover I
-            a = np.nextafter(a.astype(np.float32), np.float32(-np.inf))
-            b = np.nextafter(b.astype(np.float32), np.float32(np.inf))
-        F = len(traj)
-        g = np.empty(F)
-        cap = np.empty(F, np.int64)
-        box = np.empty(F, np.int64)
-        for start in range(0, F, BUCKETS[-1]):
-            stop = min(F, start + BUCKETS[-1])
+    def _bucketed(self, call, items, on_chunk=None):
+        """Run ``call(*chunk)`` over the per-item arrays ``items`` in chunks padded to
+        :data:`BUCKETS` (padding repeats the chunk's first item; its results are dropped).
+        Returns the outputs (a pytree of arrays) concatenated over the items."""
+        n = len(items[0])
+        parts = []
+        for start in range(0, n, BUCKETS[-1]):
+            stop = min(n, start + BUCKETS[-1])
             size = next(s for s in BUCKETS if s >= stop - start)
             size = -(-size // max(1, len(self.devices))) * max(1, len(self.devices))  # whole shards
             pad = size - (stop - start)
-            sl = slice(start, stop)
-            # Padding repeats the chunk's first interval; its results are dropped below.
-            tr = np.concatenate([traj[sl], np.repeat(traj[start], pad)])
-            aa = np.concatenate([a[sl], np.repeat(a[start], pad)]).astype(self.dtype)
-            bb = np.concatenate([b[sl], np.repeat(b[start], pad)]).astype(self.dtype)
+            chunk = [np.concatenate([x[start:stop], np.repeat(x[start:start + 1], pad, axis=0)]) for x in items]
             with jax.enable_x64(self.dtype == np.float64):
-                tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
-                out = _evaluate_intervals(
-                    self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
-                    self.box_mask, tr_s, sc_s, aa, bb, self.margin,
-                )
-                gg, cc, bx = (np.asarray(x) for x in out)
-            g[sl], cap[sl], box[sl] = gg[: stop - start], cc[: stop - start], bx[: stop - start]
+                out = call(*self._put(*chunk))
+                parts.append(jax.tree.map(lambda x: np.asarray(x)[: stop - start], out))
             if on_chunk:
                 on_chunk(stop - start)
-        return a, b, g, cap, box
+        return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
+
+    def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None):
+        """The cascade (larc_jax.cascade) on every interval: ``(a, b, g, capsule, box, stage)``,
+        stage 1 for intervals the capsule test passes, 2 for those only the hull test passes,
+        0 for the rest. Without :attr:`hulls`, the capsule test alone."""
+        a, b, g, cap, box = self.evaluate(traj, depth, index, on_chunk)
+        stage = (g > self.guard).astype(np.int8)
+        open_ = np.flatnonzero(~(g > self.guard) & ~np.isnan(g))
+        if self.hulls is None or not len(open_):
+            return a, b, g, cap, box, stage
+        aa, bb = a[open_], b[open_]
+        tr = traj[open_]
+        d = self._bucketed(
+            lambda t, sc, x, y: _interval_pairs(self.robot, self.capsules, self.hulls, self.splines, self.box_lo,
+                                                self.box_hi, self.box_mask, t, sc, x, y, self.margin),
+            [tr, self.scene_of[tr], aa, bb])
+        links = Links.of(self.capsules, self.hulls)
+        tried, triples = select_pairs(links, d.g_capsule, d.g_upper, self.guard)
+        g_hull = np.zeros(0)
+        if len(triples):
+            i, p, k = triples.T
+            sc = self.scene_of[tr[i]]
+            g_hull = self._bucketed(
+                lambda pp, T, lo, hi, mb: _hull_pairs(self.hulls, pp, T, lo, hi, mb, self.margin),
+                [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]])
+        g2, cap2, box2, passed = combine(links, d.g_capsule, tried, triples, g_hull, self.guard)
+        g, cap, box = g.copy(), cap.copy(), box.copy()
+        g[open_], cap[open_], box[open_] = g2, cap2, box2
+        stage[open_] = np.where(passed, 2, 0)
+        return a, b, g, cap, box, stage
+
+    def _interval_ends(self, a, b):
+        """Interval ends as the kernel receives them (float32: rounded outwards, so that the
+        float32 intervals still cover the float64 ones)."""
+        if self.dtype == np.float32:
+            a = np.nextafter(a.astype(np.float32), np.float32(-np.inf))
+            b = np.nextafter(b.astype(np.float32), np.float32(np.inf))
+        return a.astype(self.dtype), b.astype(self.dtype)
+
+    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None):
+        """``(a, b, g, capsule, box)`` for every interval (NumPy arrays): the capsule test;
+        ``a, b`` as the kernel received them."""
+        a, b = self._interval_ends(*self.endpoints(traj, depth, index))
+        g, cap, box = self._bucketed(
+            lambda t, sc, x, y: _evaluate_intervals(self.robot, self.capsules, self.splines, self.box_lo,
+                                                    self.box_hi, self.box_mask, t, sc, x, y, self.margin),
+            [traj, self.scene_of[traj], a, b], on_chunk)
+        return a, b, g, cap.astype(np.int64), box.astype(np.int64)
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
-            margin: float, dtype, devices=None) -> Batch:
+            margin: float, dtype, devices=None, hulls: HullModel | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene per trajectory).
 
     ``devices``: the devices to shard each interval batch over (default: every device of JAX's
@@ -174,4 +231,5 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         margin=np.asarray(margin, dtype), dtype=dtype,
         guard=rounding_guard(dtype, coordinate_scale(scene_list, robot, capsules)),
         devices=tuple(jax.devices() if devices is None else devices),
+        hulls=None if hulls is None else _cast(hulls, dtype),
     )

@@ -150,6 +150,8 @@ def _package_dirs(items: list[str] | None) -> dict[str, str]:
 
 def _cmd_fit_capsules(args) -> int:
     from .enclosure import fit_capsules, load_capsules, save_capsules, verify_containment
+    from .enclosure.fit import fit_stated_capsules
+    from .enclosure.hull import choose_hull_parts
     from .urdf import load_robot
 
     per_link = {}
@@ -180,13 +182,16 @@ def _cmd_fit_capsules(args) -> int:
             robot, n_capsules=args.n_capsules, capsules_per_link=per_link, padding_m=args.padding,
             progress=on_link,
         )
+        stated = fit_stated_capsules(robot, padding_m=args.padding, progress=on_link)
+        hull_parts = choose_hull_parts(robot, progress=on_link)
     import os
 
     out_dir = Path(args.output).resolve().parent  # the file's paths are relative to its folder
     rel = lambda p: os.path.relpath(Path(p).expanduser().resolve(), out_dir)  # noqa: E731
     urdf_field = None if args.no_urdf_field else rel(args.urdf)
     save_capsules(args.output, robot, fitted, padding_m=args.padding, urdf=urdf_field,
-                  package_dirs={k: rel(v) for k, v in _package_dirs(args.package_dir).items()})
+                  package_dirs={k: rel(v) for k, v in _package_dirs(args.package_dir).items()},
+                  stated=stated, hull_parts=hull_parts)
     caps = load_capsules(args.output, robot)
     checked = verify_containment(robot, caps, source=str(args.output))
     if not args.quiet:

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "MAX_DEPTH_LIMIT",
-    "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "DEFAULT_CHUNK_SIZE", "check_margin", "check_depth",
+    "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "DEFAULT_CHUNK_SIZE", "ENCLOSURES", "DEFAULT_ENCLOSURE",
+    "check_margin", "check_depth", "check_enclosure",
 ]
 
 DEFAULT_MARGIN_M = 0.01
@@ -26,7 +27,11 @@ DEFAULT_CHUNK_SIZE = 256
 """Trajectories per chunk when streaming (``certify_stream``, ``larc certify --manifest``): large
 enough to keep the frontier kernels busy, small enough that a chunk takes tens of MB."""
 DEFAULT_PADDING_M = 0.001
-"""Padding added to fitted capsule radii on top of the proven containment, m."""
+"""Padding added to fitted capsule radii (and to the hull parts) on top of the proven containment, m."""
+ENCLOSURES = ("hull", "capsules")
+"""``hull``: the cascade (capsule test, then the convex-hull test on what it leaves open;
+:mod:`larc_jax.cascade`); ``capsules``: the capsule test alone (the paper's model)."""
+DEFAULT_ENCLOSURE = ENCLOSURES[0]
 
 
 def check_margin(margin, what: str = "margin") -> float:
@@ -38,6 +43,15 @@ def check_margin(margin, what: str = "margin") -> float:
     if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not (math.isfinite(margin) and margin > 0):
         raise LarcInputError(f"{what} {margin!r}: must be a finite number > 0 m (the clearance margin rho, paper eq. 3)")
     return float(margin)
+
+
+def check_enclosure(enclosure, what: str = "enclosure") -> str:
+    """One of :data:`ENCLOSURES`; else :class:`LarcInputError`."""
+    from .errors import LarcInputError
+
+    if enclosure not in ENCLOSURES:
+        raise LarcInputError(f"{what} {enclosure!r}: one of {', '.join(ENCLOSURES)}")
+    return enclosure
 
 
 def check_depth(depth, what: str = "max_depth") -> int:

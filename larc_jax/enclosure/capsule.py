@@ -45,6 +45,10 @@ class CapsuleModel:
     link_index: tuple[int, ...] = dataclasses.field(metadata=dict(static=True))
     """Robot link index carrying each capsule."""
     padding_m: float = dataclasses.field(metadata=dict(static=True))
+    hull_parts: tuple[tuple[str, tuple[float, float, float], float], ...] = dataclasses.field(
+        default=(), metadata=dict(static=True))
+    """How the robot file splits links into hull parts for the cascade: ``(link, normal,
+    offset)`` planes in the link frame (:mod:`larc_jax.enclosure.hull`); other links are one part."""
 
     @property
     def n_capsules(self) -> int:

@@ -1,0 +1,271 @@
+"""A proven lower bound on the distance between a convex polytope and an axis-aligned box.
+
+The hull stage of the certificate (:mod:`larc_jax.cascade`) needs, for a link part ``P =
+conv(V)`` (its hull vertices, given in the link frame and placed by the link pose ``x -> R x +
+t``) and an obstacle box ``B = [lo, hi]``, a number that is *never more* than ``d(P, B) =
+min_{p in P, x in B} |x - p|``.
+
+Why any axis gives one. For every non-zero vector ``w`` and all ``p in P``, ``x in B``:
+``w . (x - p) <= |w| |x - p|``. Taking the minimum over ``x`` and ``p``::
+
+    d(P, B) >= lb(w) = (min_{x in B} w . x  -  max_{p in P} w . p) / |w|          (S)
+
+(a negative right-hand side is still a true, useless, bound). ``min_B w . x`` is attained at
+the box corner taking ``lo_i`` where ``w_i > 0`` and ``hi_i`` elsewhere; ``max_P w . p`` at a
+vertex (a linear function on a polytope), computed in the link frame as
+``w . t + max_v (R^T w) . v``. Both are exact, so (S) holds for *any* ``w``, however it was
+found: how the axes are chosen decides how tight the bound is, never whether it is sound.
+
+Which axes. Strong duality for two convex sets makes (S) exact at the best ``w``: the direction
+from the closest point of ``P`` to the closest point of ``B``. We search for it with GJK
+(Gilbert, Johnson, Keerthi 1988) on the Minkowski difference ``D = B - P``, whose point of
+least ``w``-projection is ``(box corner) - (support vertex)``: the search keeps a simplex of at
+most four points of ``D``; each step evaluates (S) at the current ``w``, adds the new point, and
+replaces ``w`` by the point of the simplex nearest the origin (:func:`_nearest_in_simplex`:
+every face of the simplex is projected on and the nearest projection inside its face is kept;
+a tetrahedron holding the origin means the sets may touch). The first axis points from the
+part's centre (``centre``, any point: it only seeds the search) to the box. The kernel runs a
+fixed number of steps (:data:`GJK_ITERATIONS`, so that it vectorises) and returns the largest
+(S) met. On the PIPER link hulls next to random boxes 1-30 mm away, 12 steps come within
+0.06 mm of the true distance (python-fcl on the hull mesh) in the worst of 900 cases and match
+it in 90 %; tests/test_polytope.py checks the one-sided inequality against FCL and dense
+sampling.
+
+Rounding. Every quantity is a short sum of products of coordinates bounded by the rounding
+guard's ``scale`` (:mod:`larc_jax.interval`): the support vertex placed as ``R v + t`` (as the
+capsule ends are), two 3-term dot products and one division by ``|w|`` (a relative error of a
+few ulps on a value at most ``scale``). The computed bound therefore exceeds the exact (S) at
+the computed ``w`` by at most ~20 ulps times ``(1 + scale)``, far inside the guard (256 ulps in
+float64, 4096 in float32) that every clearance is compared with; the search itself may be
+inexact in any way without harm. Degenerate simplices are skipped by their determinant tests
+and a zero ``w`` is replaced by a fixed axis, so finite input gives a finite bound; NaN input
+gives NaN (never certifies).
+
+:func:`polytope_box_lower_bound` is the JAX kernel for one polytope and one box (batch with
+``jax.vmap``; it reads the vertices a column at a time, so a gathered vertex table fuses into
+the support reduction instead of being copied per pair); :func:`polytope_box_lower_bound_np` is
+its NumPy float64 reference, the same steps written with loops.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np"]
+
+GJK_ITERATIONS = 12
+"""GJK steps per polytope-box pair (fixed: the kernel is vectorised over pairs)."""
+
+_FACES = tuple(s for k in (1, 2, 3) for s in itertools.combinations(range(4), k))
+"""Faces of a 4-point simplex tried by the nearest-point step, in a fixed order (ties go to the
+first, in the kernel and the reference alike)."""
+
+_DEGENERATE = 1e-12
+"""A triangle whose Gram determinant is below this fraction of ``|e1|^2 |e2|^2`` is skipped
+(its nearest point lies on an edge, which is tried anyway)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# JAX kernel
+# ----------------------------------------------------------------------------------------------
+
+
+def _face_weights(G: jax.Array, face: tuple[int, ...]):
+    """Barycentric weights (on ``face``) of the origin's projection onto the face's affine hull,
+    from the Gram matrix ``G = Y Y^T``; and whether the face is usable (non-degenerate)."""
+    dtype = G.dtype
+    if len(face) == 1:
+        return jnp.ones(1, dtype), jnp.array(True)
+    if len(face) == 2:
+        i, j = face
+        den = G[i, i] - 2 * G[i, j] + G[j, j]  # |Y_j - Y_i|^2
+        mu = (G[i, i] - G[i, j]) / jnp.where(den > 0, den, 1)
+        return jnp.stack([1 - mu, mu]), den > 0
+    i, j, k = face
+    a11 = G[j, j] - 2 * G[i, j] + G[i, i]
+    a22 = G[k, k] - 2 * G[i, k] + G[i, i]
+    a12 = G[j, k] - G[i, j] - G[i, k] + G[i, i]
+    r1 = G[i, i] - G[i, j]
+    r2 = G[i, i] - G[i, k]
+    det = a11 * a22 - a12 * a12
+    safe = jnp.where(det > 0, det, 1)
+    mu1 = (r1 * a22 - r2 * a12) / safe
+    mu2 = (r2 * a11 - r1 * a12) / safe
+    return jnp.stack([1 - mu1 - mu2, mu1, mu2]), det > _DEGENERATE * a11 * a22
+
+
+def _triple(a, b, c):
+    return a @ jnp.cross(b, c)
+
+
+def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
+    """Point of conv(active rows of ``Y`` (4, 3)) nearest the origin, and its weights (4,).
+
+    Every face (vertex, edge, triangle) is projected on; among the projections inside their
+    face the shortest is the answer (the nearest point lies in the relative interior of some
+    face, and every candidate is a point of the simplex). A full tetrahedron holding the origin
+    gives the origin (weights from signed volumes)."""
+    G = Y @ Y.T
+    weights, norms = [], []
+    for face in _FACES:
+        lam, usable = _face_weights(G, face)
+        idx = jnp.array(face)
+        full = jnp.zeros(4, Y.dtype).at[idx].set(lam)
+        ok = usable & jnp.all(active[idx]) & jnp.all(lam >= 0)
+        weights.append(full)
+        norms.append(jnp.where(ok, full @ G @ full, jnp.inf))
+    k = jnp.argmin(jnp.stack(norms))
+    lam = jnp.stack(weights)[k]
+    e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
+    vol = _triple(e1, e2, e3)
+    sub = jnp.stack([_triple(-Y[0], e2, e3), _triple(e1, -Y[0], e3), _triple(e1, e2, -Y[0])])
+    mu = sub / jnp.where(vol != 0, vol, 1)
+    tet = jnp.concatenate([(1 - mu.sum())[None], mu])
+    inside = jnp.all(active) & (vol != 0) & jnp.all(tet >= 0)
+    lam = jnp.where(inside, tet, lam)
+    x = jnp.where(inside, jnp.zeros(3, Y.dtype), lam @ Y)
+    return x, lam
+
+
+def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,
+                             t: jax.Array, lo: jax.Array, hi: jax.Array,
+                             iterations: int = GJK_ITERATIONS) -> jax.Array:
+    """Lower bound on the distance between the placed polytope ``conv(R V + t)``, ``V =
+    vertices[part]``, and the box ``[lo, hi]`` (module docstring).
+
+    Args:
+      vertices: (P, K, 3) vertex table of all polytopes in their link frames, m (finite; rows
+        may repeat: padding). Indexed inside the support step so that under ``vmap`` the table
+        is read in place, never copied per pair.
+      part: scalar index of the polytope.
+      centre: (3,) any point in the link frame (seeds the search; the part's centre is best).
+      R, t: (3, 3), (3,) link pose in the box frame (rotation, translation m).
+      lo, hi: (3,) box corners, m, ``lo <= hi``.
+      iterations: GJK steps (static).
+
+    Returns:
+      Scalar, m: never more than the true distance (exact up to rounding once the search has
+      converged); <= 0 when the sets may touch; NaN for non-finite input.
+    """
+    dtype = R.dtype
+    centre, t, lo, hi = (x.astype(dtype) for x in (centre, t, lo, hi))
+    table = vertices.astype(dtype)
+    unit_x = jnp.array([1.0, 0.0, 0.0], dtype)
+
+    def bound(w, part):
+        """(S) at ``w`` and the point of D = B - P attaining it."""
+        w = jnp.where(w @ w > 0, w, unit_x)  # any axis is sound; this one avoids 0/0
+        m = R.T @ w  # the axis in the link frame
+        V = table[part]  # read by the reduction only (fused); the winner is fetched apart
+        k = jnp.argmax(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
+        s = jnp.where(w > 0, lo, hi) - (R @ table[part, k] + t)
+        return (w @ s) / jnp.sqrt(w @ w), s
+
+    c = R @ centre + t
+    best, s = bound(jnp.clip(c, lo, hi) - c, part)
+    Y = jnp.zeros((4, 3), dtype).at[0].set(s)
+    active = jnp.array([True, False, False, False])
+
+    def step(_, carry):
+        Y, active, w, best = carry
+        # The barrier keeps XLA from hoisting the loop-invariant table[part] out of the loop,
+        # which would copy the whole vertex table once per pair (memory, not arithmetic).
+        _, p = jax.lax.optimization_barrier((w, part))
+        lb, s = bound(w, p)
+        best = jnp.maximum(best, lb)
+        room = ~jnp.all(active)  # a full simplex holds the origin: nothing left to improve
+        slot = jnp.argmax(~active)
+        Y = jnp.where(room, Y.at[slot].set(s), Y)
+        active = jnp.where(room, active.at[slot].set(True), active)
+        w_new, lam = _nearest_in_simplex(Y, active)
+        return Y, jnp.where(room, lam > 0, active), jnp.where(room, w_new, w), best
+
+    _, _, _, best = jax.lax.fori_loop(0, iterations, step, (Y, active, s, best))
+    finite = jnp.isfinite(R).all() & jnp.isfinite(t).all() & jnp.isfinite(lo).all() & jnp.isfinite(hi).all()
+    return jnp.where(finite, best, jnp.nan)
+
+
+# ----------------------------------------------------------------------------------------------
+# NumPy float64 reference
+# ----------------------------------------------------------------------------------------------
+
+
+def _nearest_in_simplex_np(Y: np.ndarray, active: np.ndarray):
+    G = Y @ Y.T
+    best_n2, best_lam = math.inf, None
+    for face in _FACES:
+        if not all(active[i] for i in face):
+            continue
+        if len(face) == 1:
+            lam = np.array([1.0])
+        elif len(face) == 2:
+            i, j = face
+            den = G[i, i] - 2 * G[i, j] + G[j, j]
+            if not den > 0:
+                continue
+            mu = (G[i, i] - G[i, j]) / den
+            lam = np.array([1 - mu, mu])
+        else:
+            i, j, k = face
+            a11 = G[j, j] - 2 * G[i, j] + G[i, i]
+            a22 = G[k, k] - 2 * G[i, k] + G[i, i]
+            a12 = G[j, k] - G[i, j] - G[i, k] + G[i, i]
+            r1, r2 = G[i, i] - G[i, j], G[i, i] - G[i, k]
+            det = a11 * a22 - a12 * a12
+            if not det > _DEGENERATE * a11 * a22:
+                continue
+            mu1, mu2 = (r1 * a22 - r2 * a12) / det, (r2 * a11 - r1 * a12) / det
+            lam = np.array([1 - mu1 - mu2, mu1, mu2])
+        if (lam < 0).any():
+            continue
+        full = np.zeros(4)
+        full[list(face)] = lam
+        n2 = float(full @ G @ full)
+        if n2 < best_n2:
+            best_n2, best_lam = n2, full
+    if active.all():
+        e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
+        vol = float(e1 @ np.cross(e2, e3))
+        if vol != 0:
+            mu = np.array([-Y[0] @ np.cross(e2, e3), e1 @ np.cross(-Y[0], e3), e1 @ np.cross(e2, -Y[0])]) / vol
+            tet = np.r_[1 - mu.sum(), mu]
+            if (tet >= 0).all():
+                return np.zeros(3), tet
+    return best_lam @ Y, best_lam
+
+
+def polytope_box_lower_bound_np(V, centre, R, t, lo, hi, iterations: int = GJK_ITERATIONS) -> float:
+    """NumPy float64 reference of :func:`polytope_box_lower_bound` (same steps, loops)."""
+    V, centre, R, t, lo, hi = (np.asarray(x, np.float64) for x in (V, centre, R, t, lo, hi))
+    if not all(np.isfinite(x).all() for x in (V, R, t, lo, hi)):
+        return math.nan
+
+    def bound(w):
+        if not w @ w > 0:
+            w = np.array([1.0, 0.0, 0.0])
+        k = int(np.argmax(V @ (R.T @ w)))
+        s = np.where(w > 0, lo, hi) - (R @ V[k] + t)
+        return float(w @ s) / math.sqrt(w @ w), s
+
+    c = R @ centre + t
+    best, s = bound(np.clip(c, lo, hi) - c)
+    Y = np.zeros((4, 3))
+    Y[0] = s
+    active = np.array([True, False, False, False])
+    w = s
+    for _ in range(iterations):
+        lb, s = bound(w)
+        best = max(best, lb)
+        if active.all():
+            continue
+        slot = int(np.argmax(~active))
+        Y[slot] = s
+        active[slot] = True
+        w, lam = _nearest_in_simplex_np(Y, active)
+        active = lam > 0
+    return best
