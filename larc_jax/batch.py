@@ -31,13 +31,19 @@ from .interval import coordinate_scale, evaluate_interval, rounding_guard
 from .robot import Robot
 from .scene import Scene, pad_scenes
 
-__all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS"]
+__all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS"]
 
 BUCKETS = tuple(2**k for k in range(2, 13))
 """Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11
 compiled shapes); larger frontiers run in 4096-chunks. Small buckets matter when trajectories
 are certified one at a time: a call costs ~0.1 ms plus ~10 us per padded interval on a CPU core,
 so a 3-interval frontier padded to 64 would cost 5x what it needs."""
+
+
+CASCADE_BUCKETS = (64, 1024, 4096)
+"""Sizes of the cascade's second-stage calls (larc_jax.cascade): coarser than :data:`BUCKETS`,
+because those kernels take seconds to compile and their calls are fewer; a small call padded
+to 64 costs a few ms."""
 
 
 def size_class(n: int, minimum: int) -> int:
@@ -132,15 +138,15 @@ class Batch:
         """Interval ends from (trajectory, depth, index): :func:`dyadic_ends`."""
         return dyadic_ends(self.t_start[traj], self.t_end[traj], depth, index)
 
-    def _bucketed(self, call, items, on_chunk=None):
+    def _bucketed(self, call, items, on_chunk=None, buckets=BUCKETS):
         """Run ``call(*chunk)`` over the per-item arrays ``items`` in chunks padded to
-        :data:`BUCKETS` (padding repeats the chunk's first item; its results are dropped).
+        ``buckets`` (padding repeats the chunk's first item; its results are dropped).
         Returns the outputs (a pytree of arrays) concatenated over the items."""
         n = len(items[0])
         parts = []
-        for start in range(0, n, BUCKETS[-1]):
-            stop = min(n, start + BUCKETS[-1])
-            size = next(s for s in BUCKETS if s >= stop - start)
+        for start in range(0, n, buckets[-1]):
+            stop = min(n, start + buckets[-1])
+            size = next(s for s in buckets if s >= stop - start)
             size = -(-size // max(1, len(self.devices))) * max(1, len(self.devices))  # whole shards
             pad = size - (stop - start)
             chunk = [np.concatenate([x[start:stop], np.repeat(x[start:start + 1], pad, axis=0)]) for x in items]
@@ -165,7 +171,7 @@ class Batch:
         d = self._bucketed(
             lambda t, sc, x, y: _interval_pairs(self.robot, self.capsules, self.hulls, self.splines, self.box_lo,
                                                 self.box_hi, self.box_mask, t, sc, x, y, self.margin),
-            [tr, self.scene_of[tr], aa, bb])
+            [tr, self.scene_of[tr], aa, bb], buckets=CASCADE_BUCKETS)
         links = Links.of(self.capsules, self.hulls)
         tried, triples = select_pairs(links, d.g_capsule, d.g_upper, self.guard)
         g_hull = np.zeros(0)
@@ -174,7 +180,8 @@ class Batch:
             sc = self.scene_of[tr[i]]
             g_hull = self._bucketed(
                 lambda pp, T, lo, hi, mb: _hull_pairs(self.hulls, pp, T, lo, hi, mb, self.margin),
-                [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]])
+                [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
+                buckets=CASCADE_BUCKETS)
         g2, cap2, box2, passed = combine(links, d.g_capsule, tried, triples, g_hull, self.guard)
         g, cap, box = g.copy(), cap.copy(), box.copy()
         g[open_], cap[open_], box[open_] = g2, cap2, box2

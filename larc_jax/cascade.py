@@ -111,9 +111,10 @@ def hull_pair_clearance(hulls: HullModel, part, T_part, lo, hi, motion_b, margin
 
 
 def interval_pairs_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, traj, scene, a: float, b: float,
-                      margin: float) -> PairDetails:
-    """NumPy float64 reference of :func:`interval_pairs` (``traj``: a Trajectory, ``scene``: a Scene)."""
-    ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin)
+                      margin: float, ev=None) -> PairDetails:
+    """NumPy float64 reference of :func:`interval_pairs` (``traj``: a Trajectory, ``scene``: a
+    Scene; ``ev``: the interval's :func:`~larc_jax.interval.evaluate_interval_np`, if computed)."""
+    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, scene, a, b, margin)
     radius = np.asarray(capsules.radius, np.float64)
     G = np.full((capsules.n_capsules, max(scene.n_boxes, 1)), np.inf)
     for c in range(capsules.n_capsules):
@@ -222,7 +223,7 @@ def cascade_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, links: Li
     ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin)
     if ev.g > guard or math.isnan(ev.g):
         return ev.g, ev.capsule, ev.box, int(ev.g > guard)
-    d = interval_pairs_np(robot, capsules, hulls, traj, scene, a, b, margin)
+    d = interval_pairs_np(robot, capsules, hulls, traj, scene, a, b, margin, ev)
     tried, triples = select_pairs(links, d.g_capsule[None], d.g_upper[None], guard)
     g_hull = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], scene.lo[k], scene.hi[k], d.motion_b[p], margin)
                        for _, p, k in triples])

@@ -75,61 +75,59 @@ _DEGENERATE = 1e-12
 # ----------------------------------------------------------------------------------------------
 
 
-def _face_weights(G: jax.Array, face: tuple[int, ...]):
-    """Barycentric weights (on ``face``) of the origin's projection onto the face's affine hull,
-    from the Gram matrix ``G = Y Y^T``; and whether the face is usable (non-degenerate)."""
-    dtype = G.dtype
-    if len(face) == 1:
-        return jnp.ones(1, dtype), jnp.array(True)
-    if len(face) == 2:
-        i, j = face
-        den = G[i, i] - 2 * G[i, j] + G[j, j]  # |Y_j - Y_i|^2
-        mu = (G[i, i] - G[i, j]) / jnp.where(den > 0, den, 1)
-        return jnp.stack([1 - mu, mu]), den > 0
-    i, j, k = face
-    a11 = G[j, j] - 2 * G[i, j] + G[i, i]
-    a22 = G[k, k] - 2 * G[i, k] + G[i, i]
-    a12 = G[j, k] - G[i, j] - G[i, k] + G[i, i]
-    r1 = G[i, i] - G[i, j]
-    r2 = G[i, i] - G[i, k]
-    det = a11 * a22 - a12 * a12
-    safe = jnp.where(det > 0, det, 1)
-    mu1 = (r1 * a22 - r2 * a12) / safe
-    mu2 = (r2 * a11 - r1 * a12) / safe
-    return jnp.stack([1 - mu1 - mu2, mu1, mu2]), det > _DEGENERATE * a11 * a22
-
-
-def _triple(a, b, c):
-    return a @ jnp.cross(b, c)
+_FACE_I = np.array([f[0] for f in _FACES])
+_FACE_J = np.array([f[1] if len(f) > 1 else f[0] for f in _FACES])
+_FACE_K = np.array([f[2] if len(f) > 2 else f[0] for f in _FACES])
+_FACE_SIZE = np.array([len(f) for f in _FACES])
 
 
 def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     """Point of conv(active rows of ``Y`` (4, 3)) nearest the origin, and its weights (4,).
 
-    Every face (vertex, edge, triangle) is projected on; among the projections inside their
-    face the shortest is the answer (the nearest point lies in the relative interior of some
-    face, and every candidate is a point of the simplex). A full tetrahedron holding the origin
-    gives the origin (weights from signed volumes)."""
+    Every face (vertex, edge, triangle; all 14 at once, from the Gram matrix ``G = Y Y^T``) is
+    projected on; among the projections inside their face the shortest is the answer (the
+    nearest point lies in the relative interior of some face, and every candidate is a point of
+    the simplex). A full tetrahedron holding the origin gives the origin (weights from signed
+    volumes)."""
+    dtype = Y.dtype
     G = Y @ Y.T
-    weights, norms = [], []
-    for face in _FACES:
-        lam, usable = _face_weights(G, face)
-        idx = jnp.array(face)
-        full = jnp.zeros(4, Y.dtype).at[idx].set(lam)
-        ok = usable & jnp.all(active[idx]) & jnp.all(lam >= 0)
-        weights.append(full)
-        norms.append(jnp.where(ok, full @ G @ full, jnp.inf))
-    k = jnp.argmin(jnp.stack(norms))
-    lam = jnp.stack(weights)[k]
+    i, j, k = jnp.asarray(_FACE_I), jnp.asarray(_FACE_J), jnp.asarray(_FACE_K)
+    size = jnp.asarray(_FACE_SIZE)
+    gii, gij, gik, gjj, gjk, gkk = G[i, i], G[i, j], G[i, k], G[j, j], G[j, k], G[k, k]
+    # Edges (i, j): mu = (G_ii - G_ij) / |Y_j - Y_i|^2.
+    den = gii - 2 * gij + gjj
+    mu = (gii - gij) / jnp.where(den > 0, den, 1)
+    # Triangles (i, j, k): the 2x2 normal equations of the projection, by Cramer's rule.
+    a11, a22 = gjj - 2 * gij + gii, gkk - 2 * gik + gii
+    a12 = gjk - gij - gik + gii
+    r1, r2 = gii - gij, gii - gik
+    det = a11 * a22 - a12 * a12
+    safe = jnp.where(det > 0, det, 1)
+    mu1, mu2 = (r1 * a22 - r2 * a12) / safe, (r2 * a11 - r1 * a12) / safe
+    one, zero = jnp.ones_like(mu), jnp.zeros_like(mu)
+    lam = jnp.where((size == 1)[:, None], jnp.stack([one, zero, zero], 1),
+                    jnp.where((size == 2)[:, None], jnp.stack([1 - mu, mu, zero], 1),
+                              jnp.stack([1 - mu1 - mu2, mu1, mu2], 1)))  # (14, 3) on (i, j, k)
+    usable = jnp.where(size == 1, True, jnp.where(size == 2, den > 0, det > _DEGENERATE * a11 * a22))
+    ok = usable & active[i] & active[j] & active[k] & jnp.all(lam >= 0, axis=1)
+    # (14, 4) weights on the rows of Y (the unused slots of vertices and edges have weight 0).
+    W = (jax.nn.one_hot(i, 4, dtype=dtype) * lam[:, :1] + jax.nn.one_hot(j, 4, dtype=dtype) * lam[:, 1:2]
+         + jax.nn.one_hot(k, 4, dtype=dtype) * lam[:, 2:])
+    norm2 = jnp.where(ok, jnp.einsum("fa,ab,fb->f", W, G, W), jnp.inf)
+    lam4 = W[jnp.argmin(norm2)]
     e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
     vol = _triple(e1, e2, e3)
     sub = jnp.stack([_triple(-Y[0], e2, e3), _triple(e1, -Y[0], e3), _triple(e1, e2, -Y[0])])
-    mu = sub / jnp.where(vol != 0, vol, 1)
-    tet = jnp.concatenate([(1 - mu.sum())[None], mu])
+    tmu = sub / jnp.where(vol != 0, vol, 1)
+    tet = jnp.concatenate([(1 - tmu.sum())[None], tmu])
     inside = jnp.all(active) & (vol != 0) & jnp.all(tet >= 0)
-    lam = jnp.where(inside, tet, lam)
-    x = jnp.where(inside, jnp.zeros(3, Y.dtype), lam @ Y)
-    return x, lam
+    lam4 = jnp.where(inside, tet, lam4)
+    x = jnp.where(inside, jnp.zeros(3, dtype), lam4 @ Y)
+    return x, lam4
+
+
+def _triple(a, b, c):
+    return a @ jnp.cross(b, c)
 
 
 def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,

@@ -9,7 +9,20 @@ import math
 
 from .results import DatasetResult
 
-__all__ = ["format_clearance", "table_lines", "result_json", "leaves_bytes"]
+__all__ = ["format_clearance", "table_lines", "result_json", "leaves_bytes", "gripper_text"]
+
+
+def gripper_text(result: DatasetResult) -> str:
+    """What the certificate assumes about the held joints, in words (the table's last line)."""
+    if not result.held_joints:
+        return "no held joints"
+    parts = []
+    for name, state, lo, hi in result.held_joints:
+        if state == "stroke":
+            parts.append(f"{name} anywhere in [{lo:g}, {hi:g}] (no --hold: whole stroke enclosed)")
+        else:
+            parts.append(f"{name} = {lo:g} ({'stated' if state == 'stated' else 'held'})")
+    return "gripper: " + ", ".join(parts)
 
 
 def format_clearance(g: float) -> str:
@@ -32,8 +45,10 @@ def table_lines(result: DatasetResult) -> list[str]:
         lines.append(f"{r.id:<{width}}  {'CERTIFIED' if r.certified else 'UNCERTIFIED':<11}  "
                      f"{r.evaluations:>6}  {format_clearance(r.min_clearance_m):>14}  {blocked}".rstrip())
     n_ok = sum(r.certified for r in result)
-    lines.append(f"{n_ok} of {len(result)} certified ({result.method}, margin {result.margin_m * 1000:g} mm, "
+    enclosure = "capsules then hulls" if result.enclosure == "hull" else "capsules"
+    lines.append(f"{n_ok} of {len(result)} certified ({result.method}, {enclosure}, margin {result.margin_m * 1000:g} mm, "
                  f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s)")
+    lines.append(gripper_text(result))
     return lines
 
 
@@ -42,12 +57,16 @@ def result_json(result: DatasetResult, scene_path) -> dict:
         return x if math.isfinite(x) else None
 
     return {
-        "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
-        "scene": str(scene_path),
+        "method": result.method, "enclosure": result.enclosure, "margin_m": result.margin_m,
+        "max_depth": result.max_depth, "scene": str(scene_path),
+        "held_joints": {name: ({"state": state, "value": lo} if state != "stroke" else
+                               {"state": state, "range": [lo, hi]})
+                        for name, state, lo, hi in result.held_joints},
         "frontier_sizes": list(result.frontier_sizes),
         "trajectories": [
             {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
              "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
+             "leaves_by_stage": {stage: sum(leaf.stage == stage for leaf in r.leaves) for stage in ("capsule", "hull")},
              "first_inconclusive": (
                  {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
                   "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,

@@ -134,16 +134,22 @@ def load_capsules(path: str | Path, robot: Robot, *, check_hash: bool = True) ->
     if not (np.isfinite(padding) and padding >= 0):
         raise LarcInputError(f"{source}: padding_m must be a finite number >= 0")
     active = doc.get("active_joints")
-    if active is not None and (not isinstance(active, list) or active != list(robot.active_joint_names)):
-        raise LarcInputError(
-            f"{source}: active_joints {short_repr(active)} differ from the robot's {list(robot.active_joint_names)}"
-        )
     held = doc.get("held_joints") or {}
     if not isinstance(held, dict):
         raise LarcInputError(f"{source}: held_joints must be a mapping JOINT: VALUE")
+    # The robot may make active some joints the file holds (fingers a trajectory carries): every
+    # capsule holds its link wherever FK puts it (module docstring).
+    if active is not None and (
+            not isinstance(active, list)
+            or [j for j in robot.active_joint_names if j in active] != active
+            or any(j not in active and j not in held for j in robot.active_joint_names)):
+        raise LarcInputError(
+            f"{source}: active_joints {short_repr(active)} differ from the robot's {list(robot.active_joint_names)} "
+            f"(a robot may add only joints the file holds)"
+        )
     # A stated joint's links are placed by FK at the stated value, and every capsule holds its
     # link wherever FK puts it (module docstring): only unstated held values must match.
-    held = {j: v for j, v in held.items() if j not in robot.stated_joints}
+    held = {j: v for j, v in held.items() if j not in robot.stated_joints and j not in robot.active_joint_names}
     if "held_joints" in doc:
         # The capsules of links on held joints are valid at the recorded values only: every
         # joint the robot holds must be recorded (and equal, below).
@@ -238,7 +244,8 @@ def _parse_hull_parts(value, source: str, robot: Robot) -> tuple:
     return tuple(out)
 
 
-def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | None = None) -> tuple[Robot, CapsuleModel]:
+def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | None = None,
+                    active_joints: Sequence[str] | None = None) -> tuple[Robot, CapsuleModel]:
     """The robot and its capsules from a robot file written by ``larc fit-capsules`` (its
     ``urdf``, ``package_dirs``, ``active_joints`` and ``held_joints`` fields rebuild the robot);
     ``None``: PIPER (``LARC_PIPER_DESCRIPTION``) with the shipped capsule file.
@@ -246,12 +253,14 @@ def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | 
     ``hold``: held joints whose value the user *states* (``{"joint7": 0.0, "joint8": 0.0}``,
     ``larc certify --hold``): FK places their links at those values and the links are enclosed
     alone (module docstring). Without it, every held prismatic joint's stroke is enclosed.
+    ``active_joints``: the joints a trajectory carries, if not the file's (``larc certify
+    --joints``): the file's active joints plus some it holds, e.g. the fingers.
     """
     from ..urdf import load_robot
 
     hold = _check_hold(hold)
     if path is None:
-        robot = load_robot(held_joint_values=hold, stated_joints=list(hold))
+        robot = load_robot(active_joints=active_joints, held_joint_values=hold, stated_joints=list(hold))
         return robot, load_capsules(default_capsule_path(), robot)
     path = Path(path)
     doc = parse_yaml(read_input_text(path, "robot file"), str(path))
@@ -277,7 +286,9 @@ def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | 
     for name, value in held.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
             raise LarcInputError(f"{path}: held_joints.{name} must be a finite number, got {short_repr(value)}")
-    robot = load_robot(urdf, dirs, active_joints=active, held_joint_values={**held, **hold}, stated_joints=list(hold))
+    held = {j: v for j, v in held.items() if active_joints is None or j not in active_joints}
+    robot = load_robot(urdf, dirs, active_joints=active_joints if active_joints is not None else active,
+                       held_joint_values={**held, **hold}, stated_joints=list(hold))
     return robot, load_capsules(path, robot)
 
 
