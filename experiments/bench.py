@@ -101,7 +101,7 @@ def section_stageB(robot, capsules, trajs, scenes) -> dict:
 
     out = {"n_trajectories": len(trajs)}
     for method in ("larc", "fine"):
-        res, t_first, t_warm = _warm(lambda: certify(trajs, scenes, robot, capsules, method=method))
+        res, t_first, t_warm = _warm(lambda: certify(trajs, scenes, robot, capsules, method=method, enclosure="capsules"))
         evals = int(res.evaluations.sum())
         pairs = real_pairs(res, capsules, scenes)
         out[method] = {
@@ -139,7 +139,7 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
 def section_reference(robot, capsules, trajs, scenes, larc_s: float) -> dict:
     from larc_jax import certify
 
-    res, t = _timed(lambda: certify(trajs, scenes, robot, capsules, method="reference"))
+    res, t = _timed(lambda: certify(trajs, scenes, robot, capsules, method="reference", enclosure="capsules"))
     return {"set_s": t, "evaluations": int(res.evaluations.sum()), "reference_over_larc": t / larc_s}
 
 

@@ -44,6 +44,9 @@ __all__ = [
 ]
 
 CODE = ("experiments.timing",)
+ENCLOSURE = "capsules"
+"""Stage B reproduces the paper: its capsule model alone (the cascade of larc_jax.cascade is
+measured by experiments.tightness)."""
 """Modules whose import closure is the certification and timing stages' code."""
 CLEAR_CACHES_AFTER_COMPILES = 200
 """Paired timing calls ``jax.clear_caches()`` between trajectories once this many XLA executables
@@ -103,7 +106,7 @@ def batch_certify(trajectories, scenes, robot, capsules, *, methods: Sequence[st
     for m in methods:
         def call(m=m):
             return certify(trajectories, scenes, robot, capsules, method=m, margin=margin,
-                           max_depth=max_depth, coarse_depth=coarse_depth)
+                           max_depth=max_depth, coarse_depth=coarse_depth, enclosure=ENCLOSURE)
 
         first, t_first, n_comp, comp_s = _timed_call(call)
         if bar is not None:
@@ -180,7 +183,7 @@ def paired_timing(trajectories, scenes, robot, capsules, *, seed: int, repeats: 
         def run(m, kind, rep, pos):
             res, dt, nc, _ = _timed_call(lambda: certify(
                 [traj], [scene], robot, capsules, method=m, margin=margin,
-                max_depth=max_depth, coarse_depth=coarse_depth))
+                max_depth=max_depth, coarse_depth=coarse_depth, enclosure=ENCLOSURE))
             r = res.trajectories[0]
             mine.append(dict(traj_id=traj.id, scene=scene.name, kind=kind, repeat=rep, position=pos,
                              method=m, time_ms=1e3 * dt, compiles=nc, certified=r.certified,

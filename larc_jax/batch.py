@@ -27,20 +27,28 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
+from .cascade import Links, combine, hull_pair_clearance, interval_pairs, select_pairs
 from .compilation import cached_kernel_call
 from .enclosure.capsule import CapsuleModel
+from .enclosure.hull import HullModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import RoundingBounds, evaluate_interval, rebase_ends
 from .robot import Robot
 from .scene import Scene, pad_scenes
 
-__all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS"]
+__all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS"]
 
 BUCKETS = tuple(2**k for k in range(2, 13))
 """Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11
 compiled shapes); larger frontiers run in 4096-chunks. Small buckets matter when trajectories
 are certified one at a time: a call costs ~0.1 ms plus ~10 us per padded interval on a CPU core,
 so a 3-interval frontier padded to 64 would cost 5x what it needs."""
+
+
+CASCADE_BUCKETS = (64, 1024, 4096)
+"""Sizes of the cascade's second-stage calls (larc_jax.cascade): coarser than :data:`BUCKETS`,
+because those kernels take seconds to compile and their calls are fewer; a small call padded
+to 64 costs a few ms."""
 
 
 def size_class(n: int, minimum: int) -> int:
@@ -104,6 +112,25 @@ def _evaluate_intervals_cached(*args):
     return cached_kernel_call(_evaluate_intervals, args)
 
 
+@jax.jit
+def _interval_pairs(robot, capsules, hulls, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
+    """Step 2 of the cascade (larc_jax.cascade) on F intervals, as ``_evaluate_intervals``."""
+
+    def one(k, s, ai, bi):
+        spline = SplineRow(splines, k)
+        bnd = jax.tree.map(lambda x: x[k], bounds)
+        return interval_pairs(robot, capsules, hulls, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
+
+    return jax.vmap(one)(traj, scene, a, b)
+
+
+@jax.jit
+def _hull_pairs(hulls, part, T_part, lo, hi, motion_b, margin):
+    """Step 4 of the cascade on T (part, box) pairs."""
+    return jax.vmap(hull_pair_clearance, in_axes=(None, 0, 0, 0, 0, 0, None))(
+        hulls, part, T_part, lo, hi, motion_b, margin)
+
+
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
 
 
@@ -116,6 +143,15 @@ def _geometry(robot: Robot, capsules: CapsuleModel, dtype):
         capsules, p_link_a=cast(capsules.p_link_a), p_link_b=cast(capsules.p_link_b),
         radius=np.asarray(capsules.radius, np.float64), motion_a=np.asarray(capsules.motion_a, np.float64))
     return robot_g, capsules_g
+
+
+def _hulls_geometry(hulls: HullModel, dtype) -> HullModel:
+    """Hull vertex tables in the geometry dtype; radii and motion constants stay float64 (as
+    for capsules). A float32 vertex is rounded once: covered by the part's guard (G1)."""
+    cast = lambda x: np.asarray(x, dtype)  # noqa: E731
+    return dataclasses.replace(hulls, vertices=cast(hulls.vertices), centre=cast(hulls.centre),
+                               probes=cast(hulls.probes), radius=np.asarray(hulls.radius, np.float64),
+                               motion_a=np.asarray(hulls.motion_a, np.float64))
 
 
 def _boxes_outward(lo: np.ndarray, hi: np.ndarray, dtype):
@@ -149,6 +185,8 @@ class Batch:
     """Geometry dtype (times and the curve are always float64)."""
     devices: tuple = ()
     """Devices the interval axis is sharded over (one device: no sharding)."""
+    hulls: HullModel | None = None
+    """Hull parts for the cascade (larc_jax.cascade); None: the capsule test alone."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -181,46 +219,81 @@ class Batch:
             cost = _evaluate_intervals.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
         return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
 
-    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
-                 on_compile: Callable[[bool], None] | None = None):
-        """``(a, b, g, guard, capsule, box)`` for every interval (NumPy arrays; ``a, b`` in the
-        trajectory's own time axis); ``on_chunk(n)`` after each chunk of ``n`` intervals,
-        ``on_compile(True/False)`` around a compiling call."""
-        a, b = self.endpoints(traj, depth, index)
-        ar, br = self._rebased(traj, a, b)
-        F = len(traj)
-        g = np.empty(F)
-        guard = np.empty(F)
-        cap = np.empty(F, np.int64)
-        box = np.empty(F, np.int64)
-        for start in range(0, F, BUCKETS[-1]):
-            stop = min(F, start + BUCKETS[-1])
-            size = next(s for s in BUCKETS if s >= stop - start)
+    def _bucketed(self, call, items, on_chunk=None, buckets=BUCKETS, on_compile=None):
+        """Run ``call(*chunk)`` over the per-item arrays ``items`` in chunks padded to
+        ``buckets`` (padding repeats the chunk's first item; its results are dropped) and
+        sharded over :attr:`devices`. Returns the outputs (a pytree of NumPy arrays)
+        concatenated over the items; ``on_chunk(n)`` after each chunk of ``n`` items."""
+        n = len(items[0])
+        parts = []
+        for start in range(0, n, buckets[-1]):
+            stop = min(n, start + buckets[-1])
+            size = next(s for s in buckets if s >= stop - start)
             size = -(-size // max(1, len(self.devices))) * max(1, len(self.devices))  # whole shards
             pad = size - (stop - start)
-            sl = slice(start, stop)
-            # Padding repeats the chunk's first interval; its results are dropped below.
-            tr = np.concatenate([traj[sl], np.repeat(traj[start], pad)])
-            aa = np.concatenate([ar[sl], np.repeat(ar[start], pad)])
-            bb = np.concatenate([br[sl], np.repeat(br[start], pad)])
+            chunk = [np.concatenate([x[start:stop], np.repeat(x[start:start + 1], pad, axis=0)]) for x in items]
             with jax.enable_x64(True):
-                tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
-                kernel = _evaluate_intervals if len(self.devices) > 1 else _evaluate_intervals_cached
-                out = _call(kernel, (
-                    self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
-                    self.box_mask, self.bounds, tr_s, sc_s, aa, bb, self.margin,
-                ), on_compile)
-                gg, gd, cc, bx = (np.asarray(x) for x in out)
-            n = stop - start
-            g[sl], guard[sl], cap[sl], box[sl] = gg[:n], gd[:n], cc[:n], bx[:n]
+                out = call(*self._put(*chunk))
+                parts.append(jax.tree.map(lambda x: np.asarray(x)[: stop - start], out))
             if on_chunk:
-                on_chunk(n)
-        return a, b, g, guard, cap, box
+                on_chunk(stop - start)
+        return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
+
+    def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
+                 on_compile: Callable[[bool], None] | None = None):
+        """``(a, b, g, guard, capsule, box)`` of the capsule test for every interval (NumPy
+        arrays; ``a, b`` in the trajectory's own time axis); ``on_chunk(n)`` after each chunk of
+        ``n`` intervals, ``on_compile(True/False)`` around a compiling call."""
+        a, b = self.endpoints(traj, depth, index)
+        ar, br = self._rebased(traj, a, b)
+        kernel = _evaluate_intervals if len(self.devices) > 1 else _evaluate_intervals_cached
+        g, guard, cap, box = self._bucketed(
+            lambda t, sc, x, y: _call(kernel, (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
+                                               self.box_mask, self.bounds, t, sc, x, y, self.margin), on_compile),
+            [traj, self.scene_of[traj], ar, br], on_chunk)
+        return a, b, g, guard, cap.astype(np.int64), box.astype(np.int64)
+
+    def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
+                         on_compile: Callable[[bool], None] | None = None):
+        """The cascade (larc_jax.cascade) on every interval: ``(a, b, g, guard, capsule, box,
+        stage)``, stage 1 for intervals the capsule test passes, 2 for those only the hull test
+        passes, 0 for the rest (``stage > 0`` iff ``g > guard``). Without :attr:`hulls`, the
+        capsule test alone."""
+        a, b, g, guard, cap, box = self.evaluate(traj, depth, index, on_chunk, on_compile)
+        stage = (g > guard).astype(np.int8)
+        open_ = np.flatnonzero(~(g > guard) & ~np.isnan(g))
+        if self.hulls is None or not len(open_):
+            return a, b, g, guard, cap, box, stage
+        tr = traj[open_]
+        ar, br = self._rebased(tr, a[open_], b[open_])
+        d = self._bucketed(
+            lambda t, sc, x, y: _call(_interval_pairs, (self.robot, self.capsules, self.hulls, self.splines,
+                                                        self.box_lo, self.box_hi, self.box_mask, self.bounds, t, sc,
+                                                        x, y, self.margin), on_compile),
+            [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS)
+        links = Links.of(self.capsules, self.hulls)
+        G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
+        G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
+        tried, triples = select_pairs(links, d.g_capsule - G_c[:, :, None], d.g_upper - G_p[:, :, None])
+        g_hull = guard_hull = np.zeros(0)
+        if len(triples):
+            i, p, k = triples.T
+            sc = self.scene_of[tr[i]]
+            g_hull = self._bucketed(
+                lambda pp, T, lo, hi, mb: _call(_hull_pairs, (self.hulls, pp, T, lo, hi, mb, self.margin), on_compile),
+                [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
+                buckets=CASCADE_BUCKETS)
+            guard_hull = G_p[i, p]
+        g2, guard2, cap2, box2, passed = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
+        g, guard, cap, box = g.copy(), guard.copy(), cap.copy(), box.copy()
+        g[open_], guard[open_], cap[open_], box[open_] = g2, guard2, cap2, box2
+        stage[open_] = np.where(passed, 2, 0)
+        return a, b, g, guard, cap, box, stage
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
             margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None,
-            on_compile: Callable[[bool], None] | None = None) -> Batch:
+            on_compile: Callable[[bool], None] | None = None, hulls: HullModel | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene and one
     :func:`~larc_jax.interval.trajectory_rounding` per trajectory).
 
@@ -252,4 +325,5 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
         margin=np.asarray(margin, np.float64), dtype=dtype,
         devices=tuple(jax.devices() if devices is None else devices),
+        hulls=None if hulls is None else _hulls_geometry(hulls, dtype),
     )

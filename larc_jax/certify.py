@@ -1,9 +1,13 @@
 """The certifiers: reference (Algorithm 1), batched LARC, fixed-resolution; and ``certify``.
 
-All of them run the same interval test (:mod:`larc_jax.interval`) on exact dyadic intervals
+All of them run the same interval test on exact dyadic intervals
 (:func:`larc_jax.batch.dyadic_ends`) with the same per-trajectory rounding bounds
 (:func:`larc_jax.interval.trajectory_rounding`: rebase offset, time and speed slack, the guard of
-every capsule); a leaf passes iff its recorded clearance exceeds its recorded guard:
+every capsule and hull part). The test is the capsule test (:mod:`larc_jax.interval`,
+``enclosure="capsules"``: the paper's model) or the cascade (:mod:`larc_jax.cascade`,
+``enclosure="hull"``, the default: the capsule test, then the convex-hull test on the intervals
+it leaves open); every scheduler runs the same one, so they take the same decisions; a leaf
+passes iff its recorded clearance exceeds its recorded guard:
 
 * ``reference`` — Algorithm 1 of the paper, depth first, one trajectory, NumPy float64
   references of every kernel. Slow; the ground truth for tests.
@@ -17,6 +21,7 @@ every capsule); a leaf passes iff its recorded clearance exceeds its recorded gu
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import time
 from typing import Callable, Sequence
@@ -24,10 +29,13 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .batch import Batch, dyadic_ends, prepare
+from .cascade import Links, cascade_np
 from .compilation import CompileClock
-from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS, check_depth,
-                       check_margin)
+from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS,
+                       check_depth, check_enclosure, check_margin)
 from .enclosure.capsule import CapsuleModel
+from .enclosure.hull import HullModel, hull_model
+from .enclosure.meshes import held_joint_states
 from .errors import LarcInputError
 from .io import short_repr
 from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
@@ -72,13 +80,14 @@ class _Names:
         self.has_boxes = np.array([s.n_boxes > 0 for s in scenes], bool)
 
 
-def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, passed) -> LeafTable:
+def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, stage) -> LeafTable:
     traj = np.asarray(traj, np.int64)
     has = names.has_boxes[traj]
     return LeafTable(
         traj=traj, depth=np.asarray(depth, np.int16), index=np.asarray(index, np.int64),
         t0=np.asarray(a, np.float64), t1=np.asarray(b, np.float64), clearance_m=np.asarray(g, np.float64),
-        guard_m=np.asarray(guard, np.float64), certified=np.asarray(passed, bool),
+        guard_m=np.asarray(guard, np.float64), certified=np.asarray(stage, np.int8) > 0,
+        stage=np.asarray(stage, np.int8),
         capsule=np.where(has, np.asarray(cap, np.int64), -1).astype(np.int32),
         box=np.where(has, names.offset[traj] + np.asarray(box, np.int64), -1).astype(np.int32),
     )
@@ -94,11 +103,11 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress,
             break
         depth = np.full(len(traj), d)
         frontier[:, d] = np.bincount(traj, minlength=n_traj)
-        a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress, on_compile)
-        passed = g > guard  # NaN compares False: never certifies
+        a, b, g, guard, cap, box, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
+        passed = stage > 0  # g > guard; NaN never passes (larc_jax.cascade)
         final = passed | (d == max_depth)
         parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], g[final],
-                                 guard[final], cap[final], box[final], passed[final]))
+                                 guard[final], cap[final], box[final], stage[final]))
         open_ = ~final
         traj = np.repeat(traj[open_], 2)
         index = np.stack([2 * index[open_], 2 * index[open_] + 1], axis=1).reshape(-1)
@@ -110,30 +119,34 @@ def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, pro
     traj = np.repeat(np.arange(n_traj, dtype=np.int64), m)
     index = np.tile(np.arange(m, dtype=np.int64), n_traj)
     depth = np.full(len(traj), depth_fixed)
-    a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress, on_compile)
-    passed = g > guard
+    a, b, g, guard, cap, box, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
     frontier = np.zeros((n_traj, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
     return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, g, guard, cap, box,
-                                                        passed)])
+                                                        stage)])
 
 
-def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max_depth, bounds, progress):
+def _reference(trajectories, scenes, names: _Names, robot, capsules, hulls, margin, max_depth, bounds, progress):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
-    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, passed)
+    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, stage)
+    links = Links.of(capsules, hulls) if hulls is not None else None
     for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
         ts, te = float(traj.t[0]), float(traj.t[-1])
 
         def certify_node(d: int, i: int) -> bool:  # Algorithm 1
             a, b = (float(x) for x in dyadic_ends(ts, te, d, i))
             frontier[k, d] += 1
-            ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bnd)
+            if links is None:
+                ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bnd)
+                g, guard, cap, box, stage = ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard)
+            else:
+                g, guard, cap, box, stage = cascade_np(robot, capsules, hulls, links, traj, scene, a, b, margin, bnd)
             if progress:
                 progress(1)
-            passed = ev.g > ev.guard
+            passed = stage > 0
             if passed or d == max_depth:
-                rows.append((k, d, i, a, b, ev.g, ev.guard, ev.capsule, ev.box, passed))
-                return bool(passed)
+                rows.append((k, d, i, a, b, g, guard, cap, box, stage))
+                return passed
             left = certify_node(d + 1, 2 * i)
             right = certify_node(d + 1, 2 * i + 1)
             return left and right
@@ -203,6 +216,8 @@ def certify(
     progress: Callable[[int], None] | None = None,
     devices=None,
     on_compile: Callable[[bool], None] | None = None,
+    enclosure: str = DEFAULT_ENCLOSURE,
+    hulls: HullModel | None = None,
 ) -> DatasetResult:
     """Certify trajectories against their scenes in one call.
 
@@ -220,6 +235,14 @@ def certify(
         backend; see :mod:`larc_jax.batch`). Results do not depend on it.
       on_compile: called with ``True`` before a kernel shape new to this process is compiled
         (or loaded from the persistent cache, :mod:`larc_jax.compilation`), ``False`` after.
+      enclosure: ``hull`` (default: the cascade of :mod:`larc_jax.cascade`) or ``capsules``
+        (the capsule test alone, the paper's model).
+      hulls: the hull parts for the cascade (default: built from the robot's meshes and the
+        robot file's ``hull_parts``, :func:`~larc_jax.enclosure.hull.hull_model`).
+
+    The gripper: links below held prismatic joints (fingers) are enclosed over their whole
+    stroke unless the robot states their value (``load_robot_file(path, hold={...})``); the
+    result says which (``held_joints``).
 
     Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory, its
     ``compile_time_s`` the part of ``wall_time_s`` spent compiling. Links that ``capsules``
@@ -232,25 +255,33 @@ def certify(
         raise LarcInputError(f"certify: unknown method {short_repr(method)} ({', '.join(METHODS)})") from None
     trajectories, scenes, margin, max_depth, coarse_depth, dtype = _check_inputs(
         trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress)
+    check_enclosure(enclosure, "certify: enclosure")
+    if enclosure == "hull":
+        hulls = hulls if hulls is not None else hull_model(robot, capsules.hull_parts, capsules.padding_m)
+        hulls = hulls.on_links(capsules.link_names)  # links a capsule model excludes are excluded here too
+        Links.of(capsules, hulls)  # the same links, or a clear error
+    else:
+        hulls = None
     start = time.perf_counter()
     names = _Names(scenes)
     if method == Method.REFERENCE:
         dtype = np.float64  # the reference is NumPy float64
-    bounds = [trajectory_rounding(t, robot, capsules, dtype) for t in trajectories]
+    bounds = [trajectory_rounding(t, robot, capsules, dtype, hulls) for t in trajectories]
     with CompileClock() as clock:
         if method == Method.REFERENCE:
-            frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, bounds,
-                                          progress)
+            frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, hulls, margin, max_depth,
+                                          bounds, progress)
         else:
-            batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices, on_compile)
+            batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices, on_compile, hulls)
             if method == Method.LARC:
                 frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress, on_compile)
             else:
                 depth = max_depth if method == Method.FINE else coarse_depth
                 frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress, on_compile)
     wall = time.perf_counter() - start
-    return _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
-                           float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds))
+    result = _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
+                             float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds))
+    return dataclasses.replace(result, enclosure=enclosure, held_joints=held_joint_states(robot))
 
 
 def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, bounds,

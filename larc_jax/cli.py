@@ -24,8 +24,8 @@ import traceback
 import warnings
 from pathlib import Path
 
-from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, DEFAULT_PADDING_M, METHODS,
-                       VELOCITY_MODES, check_depth, check_margin)
+from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH,
+                       DEFAULT_PADDING_M, ENCLOSURES, METHODS, VELOCITY_MODES, check_depth, check_margin)
 from .errors import LarcInputError
 from .report import format_clearance, leaves_bytes, result_json, table_lines
 
@@ -143,6 +143,36 @@ def _read_trajectories(args, paths, robot):
     return out
 
 
+def _hold(args) -> dict[str, float]:
+    """``--hold JOINT=VALUE`` (repeatable) as a mapping; a joint given twice is refused."""
+    import math
+
+    held = {}
+    for item in getattr(args, "hold", None) or []:
+        joint, sep, value = item.partition("=")
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not sep or not joint or not math.isfinite(number):
+            raise LarcInputError(f"--hold '{item}': expected JOINT=VALUE with a finite number")
+        if joint in held:
+            raise LarcInputError(f"--hold {joint} is given twice")
+        held[joint] = number
+    return held
+
+
+def _joints(args) -> list[str] | None:
+    """``--joints j1,j2,...``: the active joints (default: the robot file's)."""
+    value = getattr(args, "joints", None)
+    if not value:
+        return None
+    names = [n.strip() for n in value.split(",")]
+    if not all(names):
+        raise LarcInputError(f"--joints '{value}': expected comma-separated joint names")
+    return names
+
+
 def _package_dirs(items: list[str] | None) -> dict[str, str]:
     out = {}
     for item in items or []:
@@ -155,6 +185,8 @@ def _package_dirs(items: list[str] | None) -> dict[str, str]:
 
 def _cmd_fit_capsules(args) -> int:
     from .enclosure import fit_capsules, load_capsules, save_capsules, verify_containment
+    from .enclosure.fit import fit_stated_capsules
+    from .enclosure.hull import choose_hull_parts
     from .urdf import load_robot
 
     per_link = {}
@@ -163,13 +195,7 @@ def _cmd_fit_capsules(args) -> int:
         if not sep or not count.isdigit():
             raise LarcInputError(f"--capsules-per-link '{item}': expected LINK=1 or LINK=2")
         per_link[link] = int(count)
-    held = {}
-    for item in args.hold or []:
-        joint, sep, value = item.partition("=")
-        try:
-            held[joint] = float(value)
-        except ValueError:
-            raise LarcInputError(f"--hold '{item}': expected JOINT=VALUE") from None
+    held = _hold(args)
     robot = load_robot(
         args.urdf, _package_dirs(args.package_dir),
         active_joints=args.joints.split(",") if args.joints else None,
@@ -185,13 +211,16 @@ def _cmd_fit_capsules(args) -> int:
             robot, n_capsules=args.n_capsules, capsules_per_link=per_link, padding_m=args.padding,
             progress=on_link,
         )
+        stated = fit_stated_capsules(robot, padding_m=args.padding, progress=on_link)
+        hull_parts = choose_hull_parts(robot, progress=on_link)
     import os
 
     out_dir = Path(args.output).resolve().parent  # the file's paths are relative to its folder
     rel = lambda p: os.path.relpath(Path(p).expanduser().resolve(), out_dir)  # noqa: E731
     urdf_field = None if args.no_urdf_field else rel(args.urdf)
     save_capsules(args.output, robot, fitted, padding_m=args.padding, urdf=urdf_field,
-                  package_dirs={k: rel(v) for k, v in _package_dirs(args.package_dir).items()})
+                  package_dirs={k: rel(v) for k, v in _package_dirs(args.package_dir).items()},
+                  stated=stated, hull_parts=hull_parts)
     caps = load_capsules(args.output, robot)
     checked = verify_containment(robot, caps, source=str(args.output))
     if not args.quiet:
@@ -271,7 +300,8 @@ def _certify_with_progress(args, trajectories, scene, robot, capsules):
 
         with CompileClock() as clock:
             result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
-                             max_depth=args.max_depth, progress=lambda k: bar.update(k), on_compile=on_compile)
+                             max_depth=args.max_depth, enclosure=args.enclosure, progress=lambda k: bar.update(k),
+                             on_compile=on_compile)
     log.debug("kernels: %d compiled or loaded, %d of them from the persistent cache; tracing %.2f s, lowering "
               "%.2f s, XLA compile or cache load %.2f s", clock.compiles, clock.cache_hits, clock.trace_s,
               clock.lower_s, clock.compile_s)
@@ -316,7 +346,7 @@ def _cmd_certify(args) -> int:
     _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves)))
     leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
     timer = _PhaseTimer()
-    robot, capsules = load_robot_file(args.robot)
+    robot, capsules = load_robot_file(args.robot, hold=_hold(args), active_joints=_joints(args))
     capsules = _capsules_without(args, robot, capsules)
     timer.lap("robot")
     scene = read_scene(args.scene, frame=robot.link_names[0])
@@ -356,7 +386,9 @@ def _certify_manifest(args) -> int:
     _check_certify_options(args)
     job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, method=args.method,
                       margin_m=args.margin, max_depth=args.max_depth, velocities=args.velocities,
-                      chunk_size=args.chunk_size, ignore_links=tuple(args.ignore_link or ()))
+                      chunk_size=args.chunk_size, ignore_links=tuple(args.ignore_link or ()),
+                      enclosure=args.enclosure, hold=tuple(sorted(_hold(args).items())),
+                      joints=tuple(_joints(args) or ()))
     rows_done = [0]
     with _progress_bar(args, desc=f"certifying ({args.method})", unit=" intervals") as bar:
 
@@ -418,7 +450,7 @@ def _cmd_explain(args) -> int:
     out = Path(args.output) if args.output else None
     _check_certify_options(args, (("--output", args.output),))
     _check_image_path(out or Path("x.png"))  # fail before the work
-    robot, capsules = load_robot_file(args.robot)
+    robot, capsules = load_robot_file(args.robot, hold=_hold(args), active_joints=_joints(args))
     capsules = _capsules_without(args, robot, capsules)
     scene = read_scene(args.scene, frame=robot.link_names[0])
     (traj,) = _read_trajectories(args, [args.trajectory], robot)
@@ -474,6 +506,19 @@ class _ArgumentParser(argparse.ArgumentParser):
         raise _UsageError(f"{message} (see `{self.prog} --help`)")
 
 
+def _gripper_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--hold", action="append", metavar="JOINT=VALUE",
+                   help="state the value of a held joint, e.g. the gripper fingers: --hold joint7=0 --hold "
+                        "joint8=0 (repeatable). Without it a held finger may be anywhere in its stroke, which "
+                        "the enclosures then cover (the output says which)")
+    p.add_argument("--joints", metavar="J1,J2,...",
+                   help="the joints the trajectories carry, if not the robot file's: e.g. add the fingers "
+                        "(joint1,...,joint6,joint7,joint8) to certify a trajectory that moves the gripper")
+    p.add_argument("--enclosure", default=DEFAULT_ENCLOSURE, choices=ENCLOSURES,
+                   help="hull (default): capsule test, then the convex-hull test on the intervals it leaves "
+                        "open; capsules: the capsule test alone (the paper's model)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _ArgumentParser(
         prog="larc", description=__doc__.splitlines()[0], parents=[_output_options(False)],
@@ -495,7 +540,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--padding", type=float, default=DEFAULT_PADDING_M, help="padding added to radii, m")
     f.add_argument("--joints", help="comma-separated active joints (default: the trunk chain)")
     f.add_argument("--hold", action="append", metavar="JOINT=VALUE",
-                   help="value at which a non-active joint is held (repeatable)")
+                   help="value at which a non-active joint is held (repeatable); a held prismatic joint's "
+                        "links are also fitted over its whole stroke (and alone, for a stated opening)")
     f.add_argument("--no-urdf-field", action="store_true",
                    help="do not record the URDF path in the file (e.g. for PIPER, found via env)")
     f.set_defaults(func=_cmd_fit_capsules)
@@ -533,6 +579,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--ignore-link", action="append", metavar="LINK",
                    help="leave this link out of the certificate (repeatable): only a link that never "
                         "moves, e.g. a fixed base standing on its table; the output names it")
+    _gripper_options(c)
     c.add_argument("--json", metavar="OUT.json", help="write per-trajectory results as JSON")
     c.add_argument("--leaves", metavar="OUT.parquet",
                    help="write the full leaf cover, one row per leaf (id, depth, index, t0, t1, "
@@ -563,6 +610,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--scene", required=True, help="scene file (as for certify)")
     e.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
     e.add_argument("--ignore-link", action="append", metavar="LINK", help="as for certify")
+    _gripper_options(e)
     e.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
                    help="as for certify")
     e.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,

@@ -6,7 +6,7 @@ from __future__ import annotations
 __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "MAX_DEPTH_LIMIT",
     "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "DEFAULT_CHUNK_SIZE", "POSITION_TOLERANCE",
-    "check_margin", "check_depth",
+    "ENCLOSURES", "DEFAULT_ENCLOSURE", "check_margin", "check_depth", "check_enclosure",
 ]
 
 DEFAULT_MARGIN_M = 0.01
@@ -32,7 +32,11 @@ motion constants of joints above an active prismatic joint are derived for its l
 twice this (:mod:`larc_jax.enclosure.motion`), so larger excursions are refused
 (:func:`larc_jax.trajectory.validate_trajectory`), between waypoints too."""
 DEFAULT_PADDING_M = 0.001
-"""Padding added to fitted capsule radii on top of the proven containment, m."""
+"""Padding added to fitted capsule radii (and to the hull parts) on top of the proven containment, m."""
+ENCLOSURES = ("hull", "capsules")
+"""``hull``: the cascade (capsule test, then the convex-hull test on what it leaves open;
+:mod:`larc_jax.cascade`); ``capsules``: the capsule test alone (the paper's model)."""
+DEFAULT_ENCLOSURE = ENCLOSURES[0]
 
 
 def check_margin(margin, what: str = "margin") -> float:
@@ -45,6 +49,15 @@ def check_margin(margin, what: str = "margin") -> float:
     if isinstance(margin, bool) or not isinstance(margin, numbers.Real) or not (math.isfinite(margin) and margin > 0):
         raise LarcInputError(f"{what} {margin!r}: must be a finite number > 0 m (the clearance margin rho, paper eq. 3)")
     return float(margin)
+
+
+def check_enclosure(enclosure, what: str = "enclosure") -> str:
+    """One of :data:`ENCLOSURES`; else :class:`LarcInputError`."""
+    from .errors import LarcInputError
+
+    if enclosure not in ENCLOSURES:
+        raise LarcInputError(f"{what} {enclosure!r}: one of {', '.join(ENCLOSURES)}")
+    return enclosure
 
 
 def check_depth(depth, what: str = "max_depth") -> int:

@@ -113,6 +113,7 @@ __all__ = [
     "RoundingBounds",
     "evaluate_interval",
     "evaluate_interval_np",
+    "motion_radii",
     "interval_clearance",
     "interval_clearance_np",
     "trajectory_rounding",
@@ -204,19 +205,21 @@ class RoundingBounds:
     """(n,) speed slack (P2), rad/s or m/s."""
     guard_m: jax.Array
     """(C,) rounding guard ``G_l`` of each capsule, m."""
+    hull_guard_m: jax.Array
+    """(P,) rounding guard of each hull part of the cascade (:mod:`larc_jax.cascade`; the same
+    formula with the part's chain, vertices and motion constants), m; (0,) without hulls."""
 
 
-def _chain_terms(robot: Robot, capsules: CapsuleModel):
-    """Per capsule: chain length L_l, fixed part of R_l (m), and the active prismatic joints
-    whose travel adds to it (G1)."""
+def _chain_terms(robot: Robot, link_index, end_norms):
+    """Per enclosure (on link ``link_index[e]``, farthest point ``end_norms[e]`` from its link
+    origin): chain length L, fixed part of R (m), and the active prismatic joints whose travel
+    adds to it (G1)."""
     T_pj = np.asarray(robot.T_parent_joint, np.float64)
     held = np.asarray(robot.q_held, np.float64)
-    ends = np.maximum(np.linalg.norm(np.asarray(capsules.p_link_a, np.float64), axis=1),
-                      np.linalg.norm(np.asarray(capsules.p_link_b, np.float64), axis=1))
     lengths, fixed, prismatic = [], [], []
-    for c, li in enumerate(capsules.link_index):
+    for e, li in enumerate(link_index):
         chain = robot.ancestors(li)[1:]
-        r = float(ends[c]) + sum(float(np.linalg.norm(T_pj[i][:3, 3])) for i in chain)
+        r = float(end_norms[e]) + sum(float(np.linalg.norm(T_pj[i][:3, 3])) for i in chain)
         active = []
         for i in chain:
             if robot.joint_type[i] == JointType.PRISMATIC:
@@ -230,9 +233,22 @@ def _chain_terms(robot: Robot, capsules: CapsuleModel):
     return np.array(lengths, np.float64), np.array(fixed), prismatic
 
 
-def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.float64) -> RoundingBounds:
+def _guards(robot: Robot, link_index, end_norms, motion_a, E, Q, ug: float) -> np.ndarray:
+    """``G_e`` of the module docstring for enclosures on ``link_index`` (per-joint position
+    error ``E``, curve bound ``Q``, geometry roundoff ``ug``)."""
+    u = _U64
+    a = np.asarray(motion_a, np.float64).reshape(len(link_index), -1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        placed = np.where(a > 0, a * E, 0.0).sum(axis=1)  # sum_j a_lj E_j (a_lj = 0: no effect)
+        lengths, fixed, prismatic = _chain_terms(robot, link_index, end_norms)
+        reach = fixed + np.array([sum(float(Q[j]) for j in js) for js in prismatic])
+        return (1 + 8 * u) * (placed + (K_FK * (lengths + 1) + 2 * K_DIST_ABS) * ug * reach)
+
+
+def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.float64, hulls=None) -> RoundingBounds:
     """The bounds of the module docstring's budget for one validated trajectory (NumPy float64):
-    its rebase offset, rebased horizon, tau, the speed slack and the guard of every capsule."""
+    its rebase offset, rebased horizon, tau, the speed slack and the guard of every capsule (and
+    of every part of ``hulls``, a :class:`~larc_jax.enclosure.hull.HullModel`, if given)."""
     ug = float(np.finfo(geometry_dtype(dtype)).eps) / 2
     u = _U64
     t = np.asarray(traj.t, np.float64)
@@ -247,14 +263,17 @@ def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.flo
         d = np.abs(np.diff(q, axis=0)) / H
         V = (v[:-1] + v[1:] + 1.5 * d).max(axis=0)  # P2
         E = K_POS * u * Q + (2.0 * ug * Q if ug > u else 0.0)
-        a = np.asarray(capsules.motion_a, np.float64)
-        placed = np.where(a > 0, a * E, 0.0).sum(axis=1)  # sum_j a_lj E_j (a_lj = 0: no effect)
-        lengths, fixed, prismatic = _chain_terms(robot, capsules)
-        reach = fixed + np.array([sum(float(Q[j]) for j in js) for js in prismatic])
-        guard = (1 + 8 * u) * (placed + (K_FK * (lengths + 1) + 2 * K_DIST_ABS) * ug * reach)
+    ends = np.maximum(np.linalg.norm(np.asarray(capsules.p_link_a, np.float64), axis=1),
+                      np.linalg.norm(np.asarray(capsules.p_link_b, np.float64), axis=1))
+    guard = _guards(robot, capsules.link_index, ends, capsules.motion_a, E, Q, ug)
+    hull_guard = np.zeros(0)
+    if hulls is not None:
+        v_max = np.linalg.norm(np.asarray(hulls.vertices, np.float64), axis=-1).max(axis=1)
+        hull_guard = _guards(robot, hulls.link_index, v_max, hulls.motion_a, E, Q, ug)
     return RoundingBounds(
         offset_s=np.float64(offset), t_start=np.float64(tr[0]), t_end=np.float64(tr[-1]),
         tau_s=np.float64(K_TIME * u * t_mag), omega_slack=K_SPEED * u * V, guard_m=guard,
+        hull_guard_m=hull_guard,
     )
 
 
@@ -292,6 +311,20 @@ class IntervalEval:
     """(C, 3) capsule segment starts at q(t_m), base frame, m."""
     p_world_b: jax.Array
     """(C, 3) capsule segment ends at q(t_m), base frame, m."""
+    g_pairs: jax.Array
+    """(C, B) certificate clearance ``g_lk`` of every capsule and box, m (+inf for padding boxes)."""
+    speed: jax.Array
+    """(n,) speed bound ``omega_max + slack`` (P2) that the motion radii use."""
+
+
+def motion_radii(motion_a, h_cov, speed):
+    """Motion radii ``b_e = h_cov * sum_j a_ej speed_j`` (eq. 6) of enclosures with motion
+    constants ``motion_a`` (E, n), float64 and rounded up (P3): (E,), m. JAX or NumPy arrays."""
+    eps = _EPS64
+    n = speed.shape[-1]
+    if isinstance(speed, np.ndarray):
+        return h_cov * (np.asarray(motion_a, np.float64) @ speed) * (1 + (n + 64) * eps)
+    return h_cov * jnp.matmul(motion_a, speed, precision=_HIGHEST) * (1 + (n + 64) * eps)
 
 
 def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSpline,
@@ -316,9 +349,8 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
     lo = jnp.maximum(a - bounds.tau_s, bounds.t_start)  # T5
     hi = jnp.minimum(b + bounds.tau_s, bounds.t_end)
     omega_max = speed_max(spline, lo, hi)  # eq. 5
-    n = omega_max.shape[-1]
     speed = omega_max + bounds.omega_slack  # P2
-    motion_b = h_cov * jnp.matmul(capsules.motion_a, speed, precision=_HIGHEST) * (1 + (n + 64) * eps)  # P3
+    motion_b = motion_radii(capsules.motion_a, h_cov, speed)  # eq. 6, P3
     p_world_a, p_world_b = capsule_segments(robot, capsules, q_mid.astype(gdtype))
     per_box = jax.vmap(segment_box_distance, in_axes=(None, None, 0, 0))
     dist = jax.vmap(per_box, in_axes=(0, 0, None, None))(p_world_a, p_world_b, box_lo, box_hi)
@@ -335,7 +367,7 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
     g = jnp.where(finite, g_cb[capsule, box], jnp.nan)  # NaN never certifies
     return IntervalEval(g=g, guard=bounds.guard_m[capsule], capsule=capsule, box=box, t_mid=t_mid, h=h,
                         h_cov=h_cov, q_mid=q_mid, omega_max=omega_max, motion_b=motion_b,
-                        p_world_a=p_world_a, p_world_b=p_world_b)
+                        p_world_a=p_world_a, p_world_b=p_world_b, g_pairs=g_cb, speed=speed)
 
 
 def interval_clearance(robot, capsules, spline, box_lo, box_hi, box_mask, a, b, margin, bounds):
@@ -359,25 +391,26 @@ def evaluate_interval_np(robot: Robot, capsules: CapsuleModel, traj, scene, t0: 
     h_cov = (max(t_mid - a, b - t_mid) + tau) * (1 + 2 * _EPS64)
     q_mid, _ = evaluate_np(t, traj.q, traj.qd, t_mid)
     omega_max = speed_max_np(t, traj.q, traj.qd, max(a - tau, t[0]), min(b + tau, t[-1]))
-    n = len(omega_max)
     speed = omega_max + np.asarray(bounds.omega_slack, np.float64)
-    motion_b = h_cov * (np.asarray(capsules.motion_a, np.float64) @ speed) * (1 + (n + 64) * _EPS64)
+    motion_b = motion_radii(capsules.motion_a, h_cov, speed)
     p_a, p_b = capsule_segments_np(robot, capsules, q_mid)
     finite = all(np.isfinite(x).all() for x in (q_mid, omega_max, motion_b, p_a, p_b))
     radius = np.asarray(capsules.radius, np.float64)
     guard = np.asarray(bounds.guard_m, np.float64)
     best, pair, g = math.inf, (0, 0), math.inf
+    g_pairs = np.full((capsules.n_capsules, max(scene.n_boxes, 1)), np.inf)
     for c in range(capsules.n_capsules):
         shell = (radius[c] + motion_b[c] + margin) * (1 + 2 * _EPS64)
         for k in range(scene.n_boxes):
             dist = segment_box_distance_np(p_a[c], p_b[c], scene.lo[k], scene.hi[k]) * (1 - K_DIST_REL * _EPS64)
+            g_pairs[c, k] = dist - shell
             excess = (dist - shell) - guard[c]
             if excess < best or (math.isnan(excess) and not math.isnan(best)):
                 best, pair, g = excess, (c, k), dist - shell
     g = g if finite else math.nan
     return IntervalEval(g=g, guard=float(guard[pair[0]]), capsule=pair[0], box=pair[1], t_mid=t_mid, h=h,
                         h_cov=h_cov, q_mid=q_mid, omega_max=omega_max, motion_b=motion_b,
-                        p_world_a=p_a, p_world_b=p_b)
+                        p_world_a=p_a, p_world_b=p_b, g_pairs=g_pairs, speed=speed)
 
 
 def interval_clearance_np(robot, capsules, traj, scene, t0: float, t1: float, margin: float, bounds=None):

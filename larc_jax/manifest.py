@@ -40,7 +40,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .defaults import DEFAULT_CHUNK_SIZE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS, VELOCITY_MODES, check_depth, check_margin
+from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS, VELOCITY_MODES,
+                       check_depth, check_enclosure, check_margin)
 from .errors import LarcInputError
 from .io import atomic_write_bytes, atomic_write_json, read_input_text
 from .stream import chunked
@@ -52,7 +53,7 @@ __all__ = [
 
 STATE_FILE = "_larc_manifest.json"
 MANIFEST_RESULT_COLUMNS = ("row", "id", "trajectory", "scene", "certified", "evaluations", "min_clearance_m",
-                           "guard_m", "duration_s", "method", "margin_m", "max_depth", "blocked_t0", "blocked_t1",
+                           "guard_m", "duration_s", "method", "enclosure", "margin_m", "max_depth", "blocked_t0", "blocked_t1",
                            "blocked_capsule", "blocked_box", "error")
 """Columns of a manifest results dataset: one row per manifest row."""
 
@@ -133,9 +134,15 @@ class ManifestJob:
     chunk_size: int = DEFAULT_CHUNK_SIZE
     ignore_links: tuple[str, ...] = ()
     """Links left out of the certificate (``--ignore-link``; only links that never move)."""
+    enclosure: str = DEFAULT_ENCLOSURE
+    hold: tuple[tuple[str, float], ...] = ()
+    """Stated values of held joints (``--hold``), as sorted (joint, value) pairs."""
+    joints: tuple[str, ...] = ()
+    """The active joints (``--joints``); empty: the robot file's."""
 
     def check(self) -> None:
         check_margin(self.margin_m, "margin")
+        check_enclosure(self.enclosure, "enclosure")
         check_depth(self.max_depth, "max_depth")
         if self.method not in METHODS:
             raise LarcInputError(f"method {self.method!r}: one of {METHODS}")
@@ -150,19 +157,19 @@ def part_name(k: int) -> str:
 
 
 @functools.lru_cache(maxsize=4)
-def _model(robot_file: str | None, stamp):
+def _model(robot_file: str | None, stamp, hold: tuple, joints: tuple):
     """Robot and capsules, loaded once per process (and reloaded if the file changes)."""
     from .enclosure.robot_file import load_robot_file
 
-    return load_robot_file(robot_file)
+    return load_robot_file(robot_file, hold=dict(hold), active_joints=list(joints) or None)
 
 
-def _load_model(robot_file: str | None):
+def _load_model(job: ManifestJob):
     stamp = None
-    if robot_file is not None:
-        st = os.stat(robot_file)
+    if job.robot_file is not None:
+        st = os.stat(job.robot_file)
         stamp = (st.st_size, st.st_mtime_ns)
-    return _model(robot_file, stamp)
+    return _model(job.robot_file, stamp, tuple(job.hold), tuple(job.joints))
 
 
 def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
@@ -178,7 +185,7 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     from .scene import read_scene
     from .trajectory_files import read_trajectory
 
-    robot, capsules = _load_model(job.robot_file)
+    robot, capsules = _load_model(job)
     capsules = capsules.without_links(robot, job.ignore_links, what="--ignore-link")
     scenes: dict[Path, object] = {}
     good, errors = [], {}
@@ -196,7 +203,7 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     leaves_frame = None
     if items:
         res = certify([t for t, _ in items], [s for _, s in items], robot, capsules, method=job.method,
-                      margin=job.margin_m, max_depth=job.max_depth, progress=progress)
+                      margin=job.margin_m, max_depth=job.max_depth, progress=progress, enclosure=job.enclosure)
         frame = res.to_dataframe()
         frame.insert(0, "row", np.array([r.row for r in good], np.int64))
         frame["trajectory"] = [str(r.trajectory) for r in good]
@@ -214,6 +221,7 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     out = pd.concat([f for f in (frame, bad_frame) if f is not None and len(f)], ignore_index=True) \
         if (frame is not None and len(frame)) or len(bad_frame) else bad_frame
     out["method"] = job.method
+    out["enclosure"] = job.enclosure
     out["margin_m"] = job.margin_m
     out["max_depth"] = job.max_depth
     out["error"] = [errors.get(int(r), "") for r in out["row"]]
@@ -252,6 +260,7 @@ def _state(job: ManifestJob, manifest: Path) -> dict:
         "robot_file": job.robot_file, "robot_sha256": robot_sha, "method": job.method,
         "margin_m": job.margin_m, "max_depth": job.max_depth, "velocities": job.velocities,
         "chunk_size": job.chunk_size, "leaves": job.leaves is not None,
+        "enclosure": job.enclosure, "hold": [list(p) for p in job.hold], "joints": list(job.joints),
         **({"ignore_links": list(job.ignore_links)} if job.ignore_links else {}),
     }
 

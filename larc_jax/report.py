@@ -9,7 +9,20 @@ import math
 
 from .results import DatasetResult
 
-__all__ = ["format_clearance", "table_lines", "result_json", "leaves_bytes"]
+__all__ = ["format_clearance", "table_lines", "result_json", "leaves_bytes", "gripper_text"]
+
+
+def gripper_text(result: DatasetResult) -> str:
+    """What the certificate assumes about the held joints, in words (the table's last line)."""
+    if not result.held_joints:
+        return "no held joints"
+    parts = []
+    for name, state, lo, hi in result.held_joints:
+        if state == "stroke":
+            parts.append(f"{name} anywhere in [{lo:g}, {hi:g}] (no --hold: whole stroke enclosed)")
+        else:
+            parts.append(f"{name} = {lo:g} ({'stated' if state == 'stated' else 'held'})")
+    return "gripper: " + ", ".join(parts)
 
 
 def format_clearance(g: float) -> str:
@@ -33,8 +46,10 @@ def table_lines(result: DatasetResult) -> list[str]:
                      f"{r.evaluations:>6}  {format_clearance(r.min_clearance_m):>14}  {blocked}".rstrip())
     n_ok = sum(r.certified for r in result)
     compiling = f" of which {result.compile_time_s:.2f} s compiling" if result.compile_time_s >= 0.005 else ""
-    lines.append(f"{n_ok} of {len(result)} certified ({result.method}, margin {result.margin_m * 1000:g} mm, "
+    enclosure = "capsules then hulls" if result.enclosure == "hull" else "capsules"
+    lines.append(f"{n_ok} of {len(result)} certified ({result.method}, {enclosure}, margin {result.margin_m * 1000:g} mm, "
                  f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s{compiling})")
+    lines.append(gripper_text(result))
     if result.excluded_links:
         lines.append(f"the certificate excludes links: {', '.join(result.excluded_links)} (never checked against "
                      "the boxes)")
@@ -46,14 +61,18 @@ def result_json(result: DatasetResult, scene_path) -> dict:
         return x if math.isfinite(x) else None
 
     return {
-        "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
-        "scene": str(scene_path), "excluded_links": list(result.excluded_links),
+        "method": result.method, "enclosure": result.enclosure, "margin_m": result.margin_m,
+        "max_depth": result.max_depth, "scene": str(scene_path), "excluded_links": list(result.excluded_links),
         "wall_time_s": result.wall_time_s, "compile_time_s": result.compile_time_s,
+        "held_joints": {name: ({"state": state, "value": lo} if state != "stroke" else
+                               {"state": state, "range": [lo, hi]})
+                        for name, state, lo, hi in result.held_joints},
         "frontier_sizes": list(result.frontier_sizes),
         "trajectories": [
             {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
              "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
              "guard_m": num(r.guard_m), "time_offset_s": r.time_offset_s,
+             "leaves_by_stage": {stage: sum(leaf.stage == stage for leaf in r.leaves) for stage in ("capsule", "hull")},
              "first_inconclusive": (
                  {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
                   "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,

@@ -19,9 +19,13 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS"]
+__all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS", "STAGES"]
 
-LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box")
+STAGES = ("", "capsule", "hull")
+"""Which test passed a leaf, by code: 0 none (not certified), 1 the capsule test, 2 the hull test
+of the cascade (larc_jax.cascade)."""
+
+LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box", "stage")
 """Columns of :meth:`DatasetResult.leaves_dataframe` (and of ``larc certify --leaves``)."""
 
 RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "guard_m", "duration_s",
@@ -47,6 +51,8 @@ class Leaf:
     capsule: str
     """The recorded pair: the one minimising clearance - guard over all pairs."""
     box: str
+    stage: str = ""
+    """Which test passed the leaf: ``capsule``, ``hull`` (larc_jax.cascade), or ``""`` (none)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +75,8 @@ class LeafTable:
     certified: np.ndarray
     capsule: np.ndarray
     box: np.ndarray
+    stage: np.ndarray
+    """int8 index into :data:`STAGES`: 0 none, 1 capsule test, 2 hull test."""
 
     def __len__(self) -> int:
         return len(self.traj)
@@ -106,6 +114,8 @@ class TrajectoryResult:
     """Offset subtracted (exactly) from every time before evaluation (budget T1), s."""
     excluded_links: tuple[str, ...] = ()
     """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
+    enclosure: str = "capsules"
+    """``capsules`` or ``hull`` (the cascade): which enclosures the certificate used."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -147,6 +157,12 @@ class DatasetResult:
     them from the persistent cache, :mod:`larc_jax.compilation`)."""
     excluded_links: tuple[str, ...] = ()
     """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
+    enclosure: str = "capsules"
+    """``capsules`` or ``hull`` (the cascade of larc_jax.cascade)."""
+    held_joints: tuple = ()
+    """What the certificate assumes about every held joint (the gripper): ``(joint, state, lo,
+    hi)`` with state ``stated`` (held at lo == hi, as the user said), ``stroke`` (anywhere in
+    [lo, hi]: enclosed over the whole stroke) or ``held`` (a held revolute joint, at lo == hi)."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
@@ -165,7 +181,8 @@ class DatasetResult:
         return Leaf(depth=int(lv.depth[row]), index=int(lv.index[row]), t0=float(lv.t0[row]),
                     t1=float(lv.t1[row]), clearance_m=float(lv.clearance_m[row]),
                     guard_m=float(lv.guard_m[row]), certified=bool(lv.certified[row]),
-                    capsule=self.capsule_names[c] if c >= 0 else "", box=self.box_names[b] if b >= 0 else "")
+                    capsule=self.capsule_names[c] if c >= 0 else "", box=self.box_names[b] if b >= 0 else "",
+                    stage=STAGES[int(lv.stage[row])])
 
     def trajectory(self, i: int) -> TrajectoryResult:
         """The :class:`TrajectoryResult` of trajectory ``i`` (built on demand)."""
@@ -176,7 +193,7 @@ class DatasetResult:
             min_clearance_m=float(self.min_clearance_m[i]),
             leaves=tuple(self._leaf(r) for r in range(sl.start, sl.stop)),
             duration_s=float(self.duration_s[i]), scene=self.scene_names[i], margin_m=self.margin_m,
-            max_depth=self.max_depth, guard_m=float(self.guard_m[i]),
+            max_depth=self.max_depth, guard_m=float(self.guard_m[i]), enclosure=self.enclosure,
             time_offset_s=0.0 if self.time_offset_s is None else float(self.time_offset_s[i]),
             excluded_links=self.excluded_links,
         )
@@ -244,4 +261,5 @@ class DatasetResult:
             "t0": lv.t0, "t1": lv.t1, "clearance_m": lv.clearance_m, "guard_m": lv.guard_m,
             "certified": lv.certified.astype(bool),
             "capsule": names[lv.capsule + 1], "box": boxes[lv.box + 1],
+            "stage": np.array(STAGES, dtype=object)[lv.stage.astype(np.int64)] if len(lv) else np.zeros(0, object),
         }, columns=list(LEAF_COLUMNS))

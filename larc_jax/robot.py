@@ -5,10 +5,14 @@ which configuration entry drives which joint) lives in Python tuples (pytree met
 so it is baked into compiled code); numeric data (joint origins, axes, limits, the values at
 which non-trajectory joints are held) are arrays. :mod:`larc_jax.urdf` builds it from a URDF.
 
-A *configuration* ``q`` holds the values of the robot's **active joints**: the serial chain of
-revolute/prismatic joints that a trajectory carries (for PIPER: joint1..joint6). Every other
-movable joint (e.g. the gripper fingers, which branch off link6) is held at a fixed value
-recorded in the model.
+A *configuration* ``q`` holds the values of the robot's **active joints**: the revolute/prismatic
+joints that a trajectory carries (for PIPER: joint1..joint6 by default; the fingers joint7 and
+joint8 too when a trajectory carries them). Every other movable joint is *held* at a value
+recorded in the model. A held joint is **stated** (``stated_joints``) when the user says it
+stays at that value (e.g. ``larc certify --hold joint7=0``): FK places its links there and their
+enclosures are those of the links alone. A held prismatic joint that is *not* stated may be
+anywhere in its stroke: the enclosures of the links below it cover the whole stroke
+(:mod:`larc_jax.enclosure.meshes`), and FK places them at the recorded reference value.
 
 Frames: the URDF root link is the world/base frame. ``T_world_link[i]`` maps link ``i``
 coordinates to base coordinates (4×4 homogeneous, metres).
@@ -48,7 +52,8 @@ class JointType(enum.IntEnum):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Robot:
-    """A kinematic tree whose active joints form one serial chain from the root.
+    """A kinematic tree; its active joints are usually one serial chain from the root (an arm),
+    possibly with branches (an arm and its finger joints).
 
     Links are stored in topological order: ``parent[i] < i`` and link 0 is the root.
     Entry ``i`` of the per-link arrays describes the joint that connects ``parent[i]`` to
@@ -80,6 +85,8 @@ class Robot:
     urdf_sha256: str = dataclasses.field(metadata=dict(static=True))
     package_dirs: tuple[tuple[str, str], ...] = dataclasses.field(metadata=dict(static=True))
     """(package name, folder) pairs used to resolve ``package://`` mesh URIs."""
+    stated_joints: tuple[str, ...] = dataclasses.field(default=(), metadata=dict(static=True))
+    """Held joints whose value the user stated (module docstring); the others' strokes are enclosed."""
 
     @property
     def n_links(self) -> int:
@@ -97,6 +104,13 @@ class Robot:
             raise LarcInputError(
                 f"{self.urdf_path}: robot has no link '{link}' (links: {', '.join(self.link_names)})"
             ) from None
+
+    @property
+    def stroke_joints(self) -> tuple[str, ...]:
+        """Held prismatic joints without a stated value: enclosures cover their whole stroke."""
+        return tuple(self.joint_names[i] for i in range(1, self.n_links)
+                     if self.q_index[i] < 0 and self.joint_type[i] == JointType.PRISMATIC
+                     and self.joint_names[i] not in self.stated_joints)
 
     def ancestors(self, link: int) -> list[int]:
         """Link indices from the root down to ``link`` (inclusive)."""

@@ -225,7 +225,7 @@ def _tree(model, urdf_path: Path):
 
 def _active_chain(urdf_path: Path, joints: dict, link_names, parent, joint_of, children,
                   active_joints: Sequence[str] | None) -> list[str]:
-    """The active joints: given (checked to be one serial chain) or the trunk (see load_robot)."""
+    """The active joints: given (any movable, non-mimic joints) or the trunk (see load_robot)."""
 
     def has_movable(j) -> bool:
         """Whether joint ``j`` or any joint below it is movable."""
@@ -252,19 +252,9 @@ def _active_chain(urdf_path: Path, joints: dict, link_names, parent, joint_of, c
                 raise LarcInputError(f"{urdf_path}: no joint named '{name}'")
             if not _movable(joints[name]):
                 raise LarcInputError(f"{urdf_path}: joint '{name}' is fixed and cannot be active")
-        # Serial chain: each active joint must be an ancestor of the next one.
-        for a, b in zip(active, active[1:]):
-            i = link_names.index(joints[b].child)
-            chain = set()
-            while i >= 0:
-                if joint_of[i] is not None:
-                    chain.add(joint_of[i].name)
-                i = parent[i]
-            if a not in chain:
-                raise LarcInputError(
-                    f"{urdf_path}: active joints are not a serial chain: '{a}' is not an "
-                    f"ancestor of '{b}'"
-                )
+        # The active joints need not be one serial chain: every link's motion constants are
+        # derived along its own path to the root (larc_jax.enclosure.motion), so an arm with
+        # its finger joints (siblings below the wrist) is fine.
     if not active:
         where = f" (the trunk branches at link '{link}': choose them with --joints)" if (
             active_joints is None and branches) else ""
@@ -282,6 +272,16 @@ def _active_chain(urdf_path: Path, joints: dict, link_names, parent, joint_of, c
                 f"(unsupported: the motion constants assume independent joints)"
             )
     return active
+
+
+def _stated(urdf_path: Path, joints: dict, active: list[str], stated_joints) -> tuple[str, ...]:
+    """The held joints whose value is stated, with the mimic joints that follow a stated leader."""
+    stated = list(dict.fromkeys(stated_joints or ()))
+    bad = sorted(n for n in stated if n not in joints or n in active or not _movable(joints[n]))
+    if bad:
+        raise LarcInputError(f"{urdf_path}: stated joints {bad} are unknown, fixed or active (state held joints only)")
+    stated += [j.name for j in joints.values() if j.mimic is not None and j.mimic.joint in stated and j.name not in stated]
+    return tuple(stated)
 
 
 def _held_values(urdf_path: Path, joints: dict, active: list[str],
@@ -335,6 +335,7 @@ def load_robot(
     *,
     active_joints: Sequence[str] | None = None,
     held_joint_values: Mapping[str, float] | None = None,
+    stated_joints: Sequence[str] | None = None,
 ) -> Robot:
     """Build a :class:`Robot` from a URDF (default: the official PIPER description).
 
@@ -348,6 +349,10 @@ def load_robot(
       held_joint_values: values for movable joints that are not active (default 0 clipped into
         the joint's limits). Mimic joints follow their leader; a value given for one must equal
         ``multiplier * leader + offset``.
+      stated_joints: held joints whose value the user *states* (e.g. the gripper opening,
+        ``larc certify --hold joint7=0``): their links are enclosed at that value alone. A held
+        prismatic joint not stated may be anywhere in its stroke, which the enclosures of its
+        links then cover (:attr:`Robot.stroke_joints`). Mimic joints of a stated leader are stated.
     """
     from .compilation import cached_robot, keep_robot
 
@@ -357,12 +362,13 @@ def load_robot(
     key = dict(urdf=str(urdf_path.resolve()), sha256=file_sha256(urdf_path),
                package_dirs=sorted(package_dirs_for(urdf_path, package_dirs).items()),
                active_joints=list(active_joints) if active_joints is not None else None,
-               held=sorted((str(k), float(v)) for k, v in (held_joint_values or {}).items()))
+               held=sorted((str(k), float(v)) for k, v in (held_joint_values or {}).items()),
+               stated=sorted(str(j) for j in (stated_joints or ())))
     robot = cached_robot(key)  # None unless the compilation cache is on (the command line)
     if robot is not None:
         return robot
     model = load_urdf_model(urdf_path, package_dirs)
-    robot = _build_robot(model, urdf_path, package_dirs, active_joints, held_joint_values)
+    robot = _build_robot(model, urdf_path, package_dirs, active_joints, held_joint_values, stated_joints)
     keep_robot(key, robot, _mesh_files(model, urdf_path, robot.package_dirs))
     return robot
 
@@ -373,12 +379,13 @@ def _mesh_files(model, urdf_path: Path, package_dirs) -> list[Path]:
             for c in link.collisions if c.geometry is not None and c.geometry.mesh is not None]
 
 
-def _build_robot(model, urdf_path: Path, package_dirs, active_joints, held_joint_values) -> Robot:
+def _build_robot(model, urdf_path: Path, package_dirs, active_joints, held_joint_values, stated_joints) -> Robot:
     """The steps of :func:`load_robot` after parsing."""
     joints = _check_joints(model, urdf_path)
     link_names, parent, joint_of, children = _tree(model, urdf_path)
     active = _active_chain(urdf_path, joints, link_names, parent, joint_of, children, active_joints)
     held_value = _held_values(urdf_path, joints, active, held_joint_values)
+    stated = _stated(urdf_path, joints, active, stated_joints)
 
     n_links = len(link_names)
     T = np.tile(np.eye(4), (n_links, 1, 1))
@@ -426,4 +433,5 @@ def _build_robot(model, urdf_path: Path, package_dirs, active_joints, held_joint
         urdf_path=str(urdf_path.resolve()),
         urdf_sha256=file_sha256(urdf_path),
         package_dirs=tuple(sorted(dirs.items())),
+        stated_joints=stated,
     )

@@ -63,14 +63,18 @@ def dataset(robot):
     return trajs, scenes
 
 
+# These tests exercise the capsule test (the paper's model); the cascade has tests/test_cascade.py.
+CAPSULES = dict(enclosure="capsules")
+
+
 @pytest.fixture(scope="module")
 def larc_result(dataset, robot, capsules):
-    return certify(*dataset, robot, capsules, method="larc", margin=MARGIN)
+    return certify(*dataset, robot, capsules, method="larc", margin=MARGIN, **CAPSULES)
 
 
 @pytest.mark.slow
 def test_reference_and_larc_agree_on_200(dataset, robot, capsules, larc_result):
-    ref = certify(*dataset, robot, capsules, method="reference", margin=MARGIN)
+    ref = certify(*dataset, robot, capsules, method="reference", margin=MARGIN, **CAPSULES)
     n_cert = sum(r.certified for r in ref)
     assert 20 < n_cert < 190, n_cert  # the random set exercises both outcomes
     for r, l in zip(ref, larc_result):
@@ -96,8 +100,8 @@ def test_leaves_cover_horizon(dataset, larc_result):
 
 @pytest.mark.slow
 def test_fine_certified_implies_larc_certified(dataset, robot, capsules, larc_result):
-    fine = certify(*dataset, robot, capsules, method="fine", margin=MARGIN)
-    coarse = certify(*dataset, robot, capsules, method="coarse", margin=MARGIN)
+    fine = certify(*dataset, robot, capsules, method="fine", margin=MARGIN, **CAPSULES)
+    coarse = certify(*dataset, robot, capsules, method="coarse", margin=MARGIN, **CAPSULES)
     assert all(r.evaluations == 512 for r in fine) and all(r.evaluations == 16 for r in coarse)
     for f, l, c in zip(fine, larc_result, coarse):
         if f.certified:
@@ -133,7 +137,7 @@ def test_soundness_against_dense_sampling(robot, capsules):
             box = Scene(lo=box.lo + direction * -shift, hi=box.hi + direction * -shift, box_names=("near",))
             scene = box
             near += 1
-        res = certify(traj, scene, robot, capsules, method="larc", margin=MARGIN)[0]
+        res = certify(traj, scene, robot, capsules, method="larc", margin=MARGIN, **CAPSULES)[0]
         if res.certified:
             checked += 1
             assert dense_clearance(robot, capsules, traj, scene) > MARGIN, traj.id
@@ -167,7 +171,7 @@ def test_interval_kernel_matches_reference(dataset, robot, capsules):
 
 
 def test_no_boxes_passes_at_root(robot, capsules, dataset):
-    res = certify(dataset[0][:3], Scene.empty(), robot, capsules)
+    res = certify(dataset[0][:3], Scene.empty(), robot, capsules, **CAPSULES)
     assert all(r.certified and r.evaluations == 1 and r.frontier_sizes[0] == 1 for r in res)
 
 
@@ -181,7 +185,7 @@ def test_zero_speed_trajectory_has_zero_inflation(robot, capsules):
     centre = pb[c] + np.array([0.0, 0.0, 1.0]) * (capsules.radius[c] + MARGIN + 0.001 + 0.05)
     scene = Scene(lo=(centre - 0.05)[None], hi=(centre + 0.05)[None], box_names=("lid",))
     g_exact = dense_clearance(robot, capsules, traj, scene, hz=10) - MARGIN
-    res = certify(traj, scene, robot, capsules)[0]
+    res = certify(traj, scene, robot, capsules, **CAPSULES)[0]
     assert res.certified and res.evaluations == 1
     assert res.min_clearance_m == pytest.approx(g_exact, abs=1e-12)  # b = 0 at zero speed
 
@@ -206,7 +210,7 @@ def test_nan_never_certifies(robot, capsules):
 @pytest.mark.slow
 def test_float32_is_conservative(dataset, robot, capsules, larc_result):
     trajs, scenes = dataset
-    r32 = certify(trajs[:60], scenes[:60], robot, capsules, method="larc", dtype=np.float32)
+    r32 = certify(trajs[:60], scenes[:60], robot, capsules, method="larc", dtype=np.float32, **CAPSULES)
     for a, b in zip(r32, larc_result):
         if a.certified:
             assert b.certified, a.id

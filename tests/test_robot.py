@@ -79,9 +79,24 @@ def test_joint_without_limits_is_named(piper_dir, tmp_path):
         load_robot(urdf)
 
 
-def test_not_a_serial_chain(robot):
-    with pytest.raises(LarcInputError, match="not a serial chain"):
-        load_robot(robot.urdf_path, active_joints=["joint1", "joint7", "joint8"])
+def test_active_fingers_branch_off_the_chain(robot):
+    """Active joints may branch (an arm and both fingers): FK places the fingers by q."""
+    from larc_jax.robot import forward_kinematics_np
+
+    r = load_robot(robot.urdf_path, active_joints=["joint1", "joint7", "joint8"])
+    assert r.n_joints == 3 and r.stroke_joints == ()
+    T = forward_kinematics_np(r, np.array([0.3, -0.02, 0.01]))
+    T0 = forward_kinematics_np(r, np.array([0.3, 0.0, 0.0]))
+    i7, i8 = r.link_index("link7"), r.link_index("link8")
+    assert np.linalg.norm(T[i7][:3, 3] - T0[i7][:3, 3]) == pytest.approx(0.02)
+    assert np.linalg.norm(T[i8][:3, 3] - T0[i8][:3, 3]) == pytest.approx(0.01)
+
+
+def test_stated_joints_must_be_held(robot):
+    with pytest.raises(LarcInputError, match="stated joints"):
+        load_robot(robot.urdf_path, stated_joints=["joint2"])
+    r = load_robot(robot.urdf_path, held_joint_values={"joint7": -0.01}, stated_joints=["joint7"])
+    assert r.stated_joints == ("joint7",) and r.stroke_joints == ("joint8",)
 
 
 def test_unknown_joint_and_missing_file(robot, tmp_path):

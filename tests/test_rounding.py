@@ -28,6 +28,8 @@ from .exact import (hermite_exact, leaf_min_clearance, min_clearance, segment_bo
 MARGIN = 0.01
 U64 = np.finfo(np.float64).eps / 2
 U32 = float(np.finfo(np.float32).eps) / 2
+CAPSULES = dict(enclosure="capsules")
+"""The checks below measure the capsules (the cascade's hulls are tighter: tests/test_cascade.py)."""
 
 
 def box_ahead(robot, capsules, q_from, q_to, clearance, half=0.05):
@@ -73,7 +75,7 @@ def test_false_safe_at_large_start_time(robot, capsules, t0):
     end = min_clearance(robot, capsules, scene, [float(x) for x in hermite_exact(t, traj.q, traj.qd, t[1])])
     assert end < MARGIN  # the last waypoint violates the margin
     for method in ("larc", "reference"):
-        res = certify(traj, scene, robot, capsules, method=method, margin=MARGIN, max_depth=4)[0]
+        res = certify(traj, scene, robot, capsules, method=method, margin=MARGIN, max_depth=4, **CAPSULES)[0]
         assert not res.certified, (method, res.evaluations, res.min_clearance_m)
         for leaf in res.leaves:
             if leaf.certified:
@@ -332,7 +334,7 @@ def test_passed_leaves_keep_the_margin_exactly(robot, capsules, case):
     0.1 .. 1000 rad/s, a box grazing the motion: every passed leaf, checked at its ends and 7 rational times inside with the
     exact curve, keeps every capsule more than rho from the box."""
     traj, scene = _make_case(robot, capsules, *case)
-    res = certify(traj, scene, robot, capsules, margin=MARGIN)[0]
+    res = certify(traj, scene, robot, capsules, margin=MARGIN, **CAPSULES)[0]
     passed = [leaf for leaf in res.leaves if leaf.certified]
     # The leaves closest to the box first; at most 40 leaves are checked densely.
     passed.sort(key=lambda leaf: leaf.clearance_m)

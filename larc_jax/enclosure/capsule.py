@@ -50,6 +50,10 @@ class CapsuleModel:
     excluded_links: tuple[str, ...] = dataclasses.field(default=(), metadata=dict(static=True))
     """Links whose capsules were removed (:meth:`without_links`): the certificate says nothing
     about them, and every result made with this model names them."""
+    hull_parts: tuple[tuple[str, tuple[float, float, float], float], ...] = dataclasses.field(
+        default=(), metadata=dict(static=True))
+    """How the robot file splits links into hull parts for the cascade: ``(link, normal,
+    offset)`` planes in the link frame (:mod:`larc_jax.enclosure.hull`); other links are one part."""
 
     @property
     def n_capsules(self) -> int:

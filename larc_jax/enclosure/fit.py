@@ -28,9 +28,10 @@ import numpy as np
 from ..errors import LarcInputError
 from ..robot import Robot
 from .capsule import CapsuleModel
-from .meshes import link_elements
+from .meshes import link_elements, stroke_shifts
 
-__all__ = ["FittedCapsule", "fit_capsules", "verify_containment", "point_segment_distance", "inside_capsule"]
+__all__ = ["FittedCapsule", "fit_capsules", "fit_stated_capsules", "verify_containment", "point_segment_distance",
+           "inside_capsule"]
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +230,17 @@ def fit_capsules(
             a, b, _ = single[link]
             out.append(_finalise(link, link, e, a, b, padding_m))
     return out
+
+
+def fit_stated_capsules(robot: Robot, *, padding_m: float = 0.001, progress=None) -> list[FittedCapsule]:
+    """Capsules of the links whose enclosure covers a stroke (below an unstated held prismatic
+    joint, e.g. PIPER's fingers), fitted to each link alone in its own frame: what the robot
+    file's ``stated_capsules`` hold, used when the gripper opening is stated."""
+    links = [l for l in robot.link_names if len(stroke_shifts(robot, l)) > 1 and len(link_elements(robot, l))]
+    if not links:
+        return []
+    stated = dataclasses.replace(robot, stated_joints=robot.stated_joints + robot.stroke_joints)
+    return fit_capsules(stated, links=links, padding_m=padding_m, progress=progress)
 
 
 # ----------------------------------------------------------------------------------------------

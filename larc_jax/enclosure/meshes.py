@@ -12,13 +12,29 @@ The collision geometry of a link is split into *elements* (one mesh triangle, or
 primitive): :func:`link_elements`. A convex enclosure holds an element iff it holds each of
 its vertices, which is what the containment proof (:mod:`larc_jax.enclosure.fit`) checks.
 
-Finger stroke. For a link on a held (non-active) prismatic joint (e.g. PIPER's fingers), every
-element also carries its copies shifted to both ends of the joint's stroke. A prismatic stroke
-sweeps the element along a segment, and the convex hull of the two end copies contains that
-sweep, so an enclosure of the tripled element holds the finger at *any* opening. Held revolute
-joints (linkage grippers, mimic joints) are enclosed at their held value only (a rotation's
-sweep is not the hull of its ends): the capsule file records the values.
-"""
+Finger stroke. For a link below a held prismatic joint whose value is not stated
+(:attr:`~larc_jax.robot.Robot.stroke_joints`, e.g. PIPER's fingers without ``--hold``), every
+element also carries its copies shifted to both ends of the joint's stroke (relative to the
+held reference value at which FK places the link). A prismatic stroke sweeps the element along
+a segment, and the convex hull of the two end copies contains that sweep, so a convex enclosure
+of the widened element holds the link at *any* opening; it also holds the unshifted copy, i.e.
+the link at the reference value itself. With several such joints above a link the copies take
+every combination of stroke ends (the sweep is then the element plus a zonotope, whose vertices
+are those combinations). The shift is a constant vector in the link frame as long as no active
+joint lies between the prismatic joint and the link; otherwise the link's position along the
+stroke is not a rigid offset and its value must be stated (an error says so).
+
+Why not "mid-stroke plus half the stroke". Another sound way to cover an unknown opening
+places the finger at mid-stroke and inflates its enclosure by half the stroke s/2 (a prismatic
+joint moves every point by |dq| <= s/2). For the hull stage the widened elements are never
+worse: conv(E + [-s/2, s/2] u) = conv(E) + [-s/2, s/2] u is contained in conv(E) + B(0, s/2)
+(a segment of half-length s/2 lies in the ball of that radius). For capsules either construction
+is a feasible capsule around the swept finger; :func:`~larc_jax.enclosure.fit.fit_capsules`
+fits the widened elements directly, which on PIPER's fingers gives a smaller capsule than
+(fit at mid-stroke) + 19 mm (tests/test_gripper.py compares them).
+
+Held revolute joints (linkage grippers, mimic joints) are enclosed at their held value only (a
+rotation's sweep is not the hull of its ends): the capsule file records the values."""
 
 from __future__ import annotations
 
@@ -33,8 +49,8 @@ from ..errors import LarcInputError
 from ..robot import JointType, Robot
 from ..urdf import file_sha256, load_urdf_model, resolve_uri
 
-__all__ = ["link_elements", "link_collisions", "robot_urdf_model", "joint_limits", "collision_geometry",
-           "links_with_geometry"]
+__all__ = ["link_elements", "link_collisions", "stroke_shifts", "held_joint_states", "robot_urdf_model",
+           "joint_limits", "collision_geometry", "links_with_geometry"]
 
 
 def _circumscribed_sphere_vertices(radius: float) -> np.ndarray:
@@ -149,11 +165,10 @@ def link_collisions(robot: Robot, link: str) -> list[tuple[np.ndarray, object, t
 def link_elements(robot: Robot, link: str) -> np.ndarray:
     """Collision elements of ``link`` in its own frame: (E, P, 3) vertex sets, float64.
 
-    An element is one mesh triangle (P = 3) or one whole primitive. If the link hangs on a held
-    (non-active) prismatic joint, every element also carries its copies shifted to both stroke
-    ends (see module docstring), so P is tripled.
+    An element is one mesh triangle (P = 3) or one whole primitive. If the link hangs below a
+    held prismatic joint whose value is not stated, every element also carries its copies
+    shifted to the stroke ends (:func:`stroke_shifts`, module docstring): P is tripled per joint.
     """
-    i = robot.link_index(link)
     groups: list[np.ndarray] = []
     for origin, geom, mesh in link_collisions(robot, link):
         elems = mesh[0][mesh[1]] if mesh is not None else _primitive_vertices(geom)[None]  # (E, P, 3)
@@ -167,13 +182,9 @@ def link_elements(robot: Robot, link: str) -> np.ndarray:
     if not groups:
         return np.zeros((0, 3, 3))
     elems = np.concatenate(groups)
-    if robot.q_index[i] < 0 and robot.joint_type[i] == JointType.PRISMATIC:
-        lo, hi = joint_limits(robot_urdf_model(robot), robot.joint_names[i])
-        ax = np.asarray(robot.axis[i], float)
-        held = float(robot.q_held[i])
-        elems = np.concatenate(
-            [elems, elems + (lo - held) * ax, elems + (hi - held) * ax], axis=1
-        )
+    shifts = stroke_shifts(robot, link)
+    if len(shifts) > 1:
+        elems = np.concatenate([elems + d for d in shifts], axis=1)
     return elems
 
 
@@ -207,6 +218,58 @@ def collision_geometry(robot: Robot) -> dict[str, list[dict]]:
             entries.append(entry)
         out[link] = entries
     return out
+
+
+def stroke_shifts(robot: Robot, link: str, model=None) -> np.ndarray:
+    """Link-frame offsets (S, 3) at which :func:`link_elements` copies ``link``'s elements: the
+    zero offset, then every combination of stroke ends of the unstated held prismatic joints
+    above it (module docstring); just the zero offset when there are none."""
+    from scipy.spatial.transform import Rotation
+
+    model = model if model is not None else robot_urdf_model(robot)
+    shifts = [np.zeros(3)]
+    R_link_child = np.eye(3)  # rotation: frame of the current link -> frame of `link`
+    i = robot.link_index(link)
+    while i > 0:
+        if robot.q_index[i] >= 0:  # an active joint: a stroke above it is no rigid offset
+            above = [robot.joint_names[k] for k in robot.ancestors(i)[1:-1]]
+            stroke = [j for j in above if j in robot.stroke_joints]
+            if stroke:
+                raise LarcInputError(
+                    f"{robot.urdf_path}: link '{link}' hangs below the active joint '{robot.joint_names[i]}' "
+                    f"and the held prismatic joint '{stroke[0]}' above it, whose value is not stated; "
+                    f"state it (--hold {stroke[0]}=VALUE)")
+            break
+        jname = robot.joint_names[i]
+        if jname in robot.stroke_joints:
+            lo, hi = joint_limits(model, jname)
+            held = float(robot.q_held[i])
+            u = R_link_child @ np.asarray(robot.axis[i], float)
+            shifts = [d + e * u for e in (0.0, lo - held, hi - held) for d in shifts]
+        R_motion = np.eye(3)
+        if robot.joint_type[i] == JointType.REVOLUTE:
+            R_motion = Rotation.from_rotvec(np.asarray(robot.axis[i], float) * float(robot.q_held[i])).as_matrix()
+        R_link_child = R_link_child @ (np.asarray(robot.T_parent_joint[i], float)[:3, :3] @ R_motion).T
+        i = robot.parent[i]
+    return np.array(shifts)
+
+
+def held_joint_states(robot: Robot) -> tuple[tuple[str, str, float, float], ...]:
+    """What the enclosures assume about each held joint: ``(joint, state, lo, hi)`` with state
+    ``stated`` (the user stated its value lo == hi), ``stroke`` (a prismatic joint anywhere in
+    [lo, hi]: its links are enclosed over the stroke) or ``held`` (a revolute joint at lo == hi)."""
+    out = []
+    for i in range(1, robot.n_links):
+        if robot.q_index[i] >= 0 or robot.joint_type[i] == JointType.FIXED:
+            continue
+        name, value = robot.joint_names[i], float(robot.q_held[i])
+        if name in robot.stated_joints:
+            out.append((name, "stated", value, value))
+        elif robot.joint_type[i] == JointType.PRISMATIC:
+            out.append((name, "stroke") + joint_limits(robot_urdf_model(robot), name))
+        else:
+            out.append((name, "held", value, value))
+    return tuple(out)
 
 
 def joint_limits(model, joint: str) -> tuple[float, float]:

@@ -15,6 +15,15 @@ all of it and refuses a mismatch ("refit with larc fit-capsules"), a file withou
 geometry without a capsule. Containment itself is re-proven on demand by ``larc
 verify-capsules`` (:func:`~larc_jax.enclosure.fit.verify_containment`), and by ``fit-capsules``
 after writing.
+
+Gripper. ``capsules`` enclose every link of the robot as fitted: links below a held prismatic
+joint (a finger) over its whole stroke, placed at the recorded ``held_joints`` value
+(``held_prismatic_stroke_enclosed``). ``stated_capsules`` enclose those links alone, in their
+own link frames: they are used instead when the joints above the link are *stated*
+(``load_robot_file(path, hold={...})``, ``larc certify --hold joint7=0``), wherever FK puts
+them. (A stroke capsule also contains its link placed anywhere by FK, since it holds the
+unshifted copy of every element; the stated capsule is just tighter.) ``hull_parts`` records how
+the hull stage splits links into parts (:mod:`larc_jax.enclosure.hull`).
 """
 
 from __future__ import annotations
@@ -30,7 +39,7 @@ from ..io import atomic_write_text, parse_number, parse_vector, parse_yaml, read
 from ..robot import JointType, Robot
 from .capsule import CapsuleModel
 from .fit import FittedCapsule
-from .meshes import collision_geometry, links_with_geometry
+from .meshes import collision_geometry, links_with_geometry, stroke_shifts
 from .motion import motion_constants
 
 __all__ = ["save_capsules", "load_capsules", "load_robot_file", "default_capsule_path", "MODEL_REVISION"]
@@ -46,13 +55,31 @@ def default_capsule_path() -> Path:
     return data_path(PIPER_CAPSULES)
 
 
+def _capsule_entries(fitted: Sequence[FittedCapsule]) -> list[dict]:
+    return [
+        {
+            "name": f.name,
+            "link": f.link,
+            "a": [round(float(x), 6) for x in f.a],
+            "b": [round(float(x), 6) for x in f.b],
+            "radius": round(f.radius, 6),
+            "volume_m3": float(f"{f.volume_m3:.6g}"),
+            "hull_volume_m3": float(f"{f.hull_volume_m3:.6g}"),
+        }
+        for f in fitted
+    ]
+
+
 def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[FittedCapsule], *,
                   padding_m: float, urdf: str | None = None,
-                  package_dirs: Mapping[str, str] | None = None) -> None:
+                  package_dirs: Mapping[str, str] | None = None,
+                  stated: Sequence[FittedCapsule] = (), hull_parts: Sequence[tuple] = ()) -> None:
     """Write the capsule file atomically.
 
     ``urdf`` and ``package_dirs`` (written only when ``urdf`` is given) let ``larc certify
     --robot FILE`` rebuild the robot; relative paths there are relative to the file's folder.
+    ``stated``: capsules of the stroke-enclosed links fitted in their own frames (module
+    docstring); ``hull_parts``: ``(link, normal, offset)`` split planes of the hull stage.
     """
     held = {
         robot.joint_names[i]: float(robot.q_held[i])
@@ -69,19 +96,12 @@ def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[FittedCapsule
         "held_joints": held,
         "held_prismatic_stroke_enclosed": True,
         "geometry": collision_geometry(robot),
-        "capsules": [
-            {
-                "name": f.name,
-                "link": f.link,
-                "a": [round(float(x), 6) for x in f.a],
-                "b": [round(float(x), 6) for x in f.b],
-                "radius": round(f.radius, 6),
-                "volume_m3": float(f"{f.volume_m3:.6g}"),
-                "hull_volume_m3": float(f"{f.hull_volume_m3:.6g}"),
-            }
-            for f in fitted
-        ],
+        "capsules": _capsule_entries(fitted),
     }
+    if stated:
+        doc["stated_capsules"] = _capsule_entries(stated)
+    if hull_parts:
+        doc["hull_parts"] = {link: {"normal": [float(x) for x in n], "offset": float(o)} for link, n, o in hull_parts}
     if urdf is not None:
         extra = {"package_dirs": dict(package_dirs)} if package_dirs else {}
         doc = {"urdf": urdf, **extra, **doc}
@@ -182,19 +202,29 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
     if not (np.isfinite(padding) and padding >= 0):
         raise LarcInputError(f"{source}: padding_m must be a finite number >= 0")
     active = doc.get("active_joints")
-    if active is not None and (not isinstance(active, list) or active != list(robot.active_joint_names)):
-        raise LarcInputError(
-            f"{source}: active_joints {short_repr(active)} differ from the robot's {list(robot.active_joint_names)}"
-        )
     held = doc.get("held_joints") or {}
     if not isinstance(held, dict):
         raise LarcInputError(f"{source}: held_joints must be a mapping JOINT: VALUE")
+    # The robot may make active some joints the file holds (fingers a trajectory carries): every
+    # capsule holds its link wherever FK puts it (module docstring).
+    if active is not None and (
+            not isinstance(active, list)
+            or [j for j in robot.active_joint_names if j in active] != active
+            or any(j not in active and j not in held for j in robot.active_joint_names)):
+        raise LarcInputError(
+            f"{source}: active_joints {short_repr(active)} differ from the robot's {list(robot.active_joint_names)} "
+            f"(a robot may add only joints the file holds)"
+        )
+    # A stated joint's links are placed by FK at the stated value, and every capsule holds its
+    # link wherever FK puts it (module docstring): only unstated held values must match.
+    held = {j: v for j, v in held.items() if j not in robot.stated_joints and j not in robot.active_joint_names}
     if "held_joints" in doc:
         # The capsules of links on held joints are valid at the recorded values only: every
         # joint the robot holds must be recorded (and equal, below).
         for i in range(1, robot.n_links):
             jname = robot.joint_names[i]
-            if robot.q_index[i] < 0 and robot.joint_type[i] != JointType.FIXED and jname not in held:
+            if (robot.q_index[i] < 0 and robot.joint_type[i] != JointType.FIXED and jname not in held
+                    and jname not in robot.stated_joints):
                 raise LarcInputError(
                     f"{source}: held_joints does not record joint '{jname}', which the robot holds "
                     f"at {float(robot.q_held[i])}"
@@ -211,29 +241,17 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
     entries = _field(doc, "capsules", source)
     if not isinstance(entries, list) or not entries:
         raise LarcInputError(f"{source}: 'capsules' must be a non-empty list")
-    names, links, idx, A, B, R = [], [], [], [], [], []
-    for k, e in enumerate(entries):
-        where = f"capsules[{k}]"
-        if not isinstance(e, dict):
-            raise LarcInputError(f"{source}: {where} must be a mapping")
-        link = _field(e, "link", source, where + ".")
-        if not isinstance(link, str):
-            raise LarcInputError(f"{source}: {where}.link must be a link name, got {short_repr(link)}")
-        if link not in robot.link_names:
-            raise LarcInputError(f"{source}: {where}.link '{link}' is not a link of {robot.urdf_path}")
-        r = parse_number(e.get("radius"), source, f"{where}.radius")
-        if not np.isfinite(r) or r <= padding or r > _MAX_CAPSULE_M:
-            raise LarcInputError(
-                f"{source}: {where}.radius must be a finite number > padding_m and <= {_MAX_CAPSULE_M:g} m, got {r!r}")
-        name = e.get("name", f"{link}_{k}")
-        if not isinstance(name, (str, int)) or isinstance(name, bool):
-            raise LarcInputError(f"{source}: {where}.name must be a string, got {short_repr(name)}")
-        names.append(str(name))
-        links.append(link)
-        idx.append(robot.link_names.index(link))
-        A.append(_vec3(_field(e, "a", source, where + "."), source, where + ".a"))
-        B.append(_vec3(_field(e, "b", source, where + "."), source, where + ".b"))
-        R.append(float(r))
+    stated_entries = doc.get("stated_capsules") or []
+    if not isinstance(stated_entries, list):
+        raise LarcInputError(f"{source}: 'stated_capsules' must be a list")
+    parsed = _parse_capsules(entries, "capsules", source, robot, padding)
+    stated = _parse_capsules(stated_entries, "stated_capsules", source, robot, padding)
+    # Links whose stroke joints are all stated take their stated capsules (module docstring).
+    free = {l for l in robot.link_names if len(stroke_shifts(robot, l)) == 1}
+    use_stated = {e[1] for e in stated if e[1] in free}
+    chosen = [e for e in parsed if e[1] not in use_stated] + [e for e in stated if e[1] in use_stated]
+    chosen.sort(key=lambda e: robot.link_names.index(e[1]))  # link order, as fitted
+    names, links, idx, A, B, R = (list(x) for x in zip(*chosen))
     _check_coverage(links, robot, source)
     ignored = doc.get("ignored_links") or []
     if not isinstance(ignored, list) or not all(isinstance(x, str) for x in ignored):
@@ -248,18 +266,74 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
         link_names=tuple(links),
         link_index=tuple(idx),
         padding_m=padding,
+        hull_parts=_parse_hull_parts(doc.get("hull_parts"), source, robot),
     )
     return model.without_links(robot, ignored, what=f"{source}: ignored_links:")
 
 
-def load_robot_file(path: str | Path | None = None) -> tuple[Robot, CapsuleModel]:
+def _parse_capsules(entries: list, key: str, source: str, robot: Robot, padding: float) -> list[tuple]:
+    """``(name, link, link index, a, b, radius)`` of each entry of a capsule list."""
+    out = []
+    for k, e in enumerate(entries):
+        where = f"{key}[{k}]"
+        if not isinstance(e, dict):
+            raise LarcInputError(f"{source}: {where} must be a mapping")
+        link = _field(e, "link", source, where + ".")
+        if not isinstance(link, str):
+            raise LarcInputError(f"{source}: {where}.link must be a link name, got {short_repr(link)}")
+        if link not in robot.link_names:
+            raise LarcInputError(f"{source}: {where}.link '{link}' is not a link of {robot.urdf_path}")
+        r = parse_number(e.get("radius"), source, f"{where}.radius")
+        if not np.isfinite(r) or r <= padding or r > _MAX_CAPSULE_M:
+            raise LarcInputError(
+                f"{source}: {where}.radius must be a finite number > padding_m and <= {_MAX_CAPSULE_M:g} m, got {r!r}")
+        name = e.get("name", f"{link}_{k}")
+        if not isinstance(name, (str, int)) or isinstance(name, bool):
+            raise LarcInputError(f"{source}: {where}.name must be a string, got {short_repr(name)}")
+        out.append((str(name), link, robot.link_names.index(link),
+                    _vec3(_field(e, "a", source, where + "."), source, where + ".a"),
+                    _vec3(_field(e, "b", source, where + "."), source, where + ".b"), float(r)))
+    return out
+
+
+def _parse_hull_parts(value, source: str, robot: Robot) -> tuple:
+    """``hull_parts: {link: {normal: [x, y, z], offset: d}}`` -> ``((link, normal, offset), ...)``."""
+    if value is None:
+        return ()
+    if not isinstance(value, dict):
+        raise LarcInputError(f"{source}: hull_parts must be a mapping LINK: {{normal: [x, y, z], offset: d}}")
+    out = []
+    for link, plane in value.items():
+        where = f"hull_parts.{link}"
+        if link not in robot.link_names:
+            raise LarcInputError(f"{source}: {where}: '{link}' is not a link of {robot.urdf_path}")
+        if not isinstance(plane, dict):
+            raise LarcInputError(f"{source}: {where} must be a mapping {{normal: [x, y, z], offset: d}}")
+        normal = _vec3(_field(plane, "normal", source, where + "."), source, where + ".normal")
+        offset = parse_number(_field(plane, "offset", source, where + "."), source, where + ".offset")
+        if not np.isfinite(offset) or not np.linalg.norm(normal) > 0:
+            raise LarcInputError(f"{source}: {where}: needs a non-zero normal and a finite offset")
+        out.append((str(link), tuple(float(x) for x in normal), float(offset)))
+    return tuple(out)
+
+
+def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | None = None,
+                    active_joints: Sequence[str] | None = None) -> tuple[Robot, CapsuleModel]:
     """The robot and its capsules from a robot file written by ``larc fit-capsules`` (its
     ``urdf``, ``package_dirs``, ``active_joints`` and ``held_joints`` fields rebuild the robot);
-    ``None``: PIPER (``LARC_PIPER_DESCRIPTION``) with the shipped capsule file."""
+    ``None``: PIPER (``LARC_PIPER_DESCRIPTION``) with the shipped capsule file.
+
+    ``hold``: held joints whose value the user *states* (``{"joint7": 0.0, "joint8": 0.0}``,
+    ``larc certify --hold``): FK places their links at those values and the links are enclosed
+    alone (module docstring). Without it, every held prismatic joint's stroke is enclosed.
+    ``active_joints``: the joints a trajectory carries, if not the file's (``larc certify
+    --joints``): the file's active joints plus some it holds, e.g. the fingers.
+    """
     from ..urdf import load_robot
 
+    hold = _check_hold(hold)
     if path is None:
-        robot = load_robot()
+        robot = load_robot(active_joints=active_joints, held_joint_values=hold, stated_joints=list(hold))
         return robot, load_capsules(default_capsule_path(), robot)
     path = Path(path)
     doc = parse_yaml(read_input_text(path, "robot file"), str(path))
@@ -286,5 +360,20 @@ def load_robot_file(path: str | Path | None = None) -> tuple[Robot, CapsuleModel
     for name, value in held.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
             raise LarcInputError(f"{path}: held_joints.{name} must be a finite number, got {short_repr(value)}")
-    robot = load_robot(urdf, dirs, active_joints=active, held_joint_values=held)
+    held = {j: v for j, v in held.items() if active_joints is None or j not in active_joints}
+    robot = load_robot(urdf, dirs, active_joints=active_joints if active_joints is not None else active,
+                       held_joint_values={**held, **hold}, stated_joints=list(hold))
     return robot, load_capsules(path, robot)
+
+
+def _check_hold(hold) -> dict[str, float]:
+    if hold is None:
+        return {}
+    if not isinstance(hold, Mapping):
+        raise LarcInputError(f"hold must be a mapping JOINT: VALUE, got {short_repr(hold)}")
+    out = {}
+    for name, value in hold.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value):
+            raise LarcInputError(f"hold: {name} must be a finite number (the joint's stated value), got {short_repr(value)}")
+        out[str(name)] = float(value)
+    return out

@@ -1,0 +1,233 @@
+"""The enclosure cascade: kernels vs references, every scheduler takes the same decisions, the
+cascade certifies at least what the capsules do, and soundness against dense sampling of the
+hull meshes (python-fcl) with near misses."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import numpy as np
+import pytest
+from scipy.interpolate import CubicHermiteSpline
+
+import larc_jax as lj
+from larc_jax.cascade import Links, combine, interval_pairs, interval_pairs_np, select_pairs
+from larc_jax.interval import rebase_ends, trajectory_rounding
+from larc_jax.enclosure.hull import hull_model
+from larc_jax.enclosure.robot_file import load_robot_file
+from larc_jax.hermite import HermiteSpline
+from larc_jax.robot import forward_kinematics_np
+from larc_jax.scene import Scene, pad_scenes
+from larc_jax.trajectory import Trajectory
+
+
+MARGIN = 0.01
+HOLD = {"joint7": 0.0, "joint8": 0.0}
+
+
+@pytest.fixture(scope="module")
+def model():
+    robot, capsules = load_robot_file(None, hold=HOLD)
+    return robot, capsules, hull_model(robot, capsules.hull_parts, capsules.padding_m)
+
+
+def near_scene(rng, robot, capsules, traj, k, n_boxes=2):
+    """Boxes some 15 cm beyond a random capsule at a random time, in a random direction (then
+    moved close by :meth:`HullClearance.place`)."""
+    spline = CubicHermiteSpline(traj.t, traj.q, traj.qd)
+    lo, hi = [], []
+    for _ in range(n_boxes):
+        q = spline(rng.uniform(traj.t[0], traj.t[-1]))
+        pa, pb = lj.enclosure.capsule_segments_np(robot, capsules, q)
+        c = int(rng.integers(capsules.n_capsules))
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        half = rng.uniform(0.01, 0.15, 3)
+        centre = (pa[c] + pb[c]) / 2 + u * (capsules.radius[c] + 0.15 + np.abs(u) @ half)
+        lo.append(centre - half)
+        hi.append(centre + half)
+    return Scene(lo=np.array(lo), hi=np.array(hi), box_names=tuple(f"b{i}" for i in range(n_boxes)), name=f"near{k}")
+
+
+class HullClearance:
+    """Dense python-fcl distance of the link hull meshes (which contain the link meshes) to boxes."""
+
+    def __init__(self, robot, hulls):
+        import fcl
+        import trimesh
+
+        self.fcl, self.robot, self.hulls = fcl, robot, hulls
+        self.objects = []
+        for p in range(hulls.n_parts):
+            m = trimesh.convex.convex_hull(np.asarray(hulls.vertices[p])[: hulls.n_vertices[p]])
+            bvh = fcl.BVHModel()
+            bvh.beginModel(len(m.vertices), len(m.faces))
+            bvh.addSubModel(np.asarray(m.vertices), np.asarray(m.faces))
+            bvh.endModel()
+            self.objects.append(fcl.CollisionObject(bvh, fcl.Transform()))
+        self.request = fcl.DistanceRequest(enable_nearest_points=True)
+
+    def __call__(self, traj, lo, hi, hz):
+        """Smallest distance on a ``hz`` grid, and the unit vector from the box to the hull then."""
+        fcl = self.fcl
+        spline = CubicHermiteSpline(traj.t, traj.q, traj.qd)
+        box = fcl.CollisionObject(fcl.Box(*(hi - lo)), fcl.Transform(np.eye(3), (lo + hi) / 2))
+        best, towards = math.inf, np.zeros(3)
+        for t in np.linspace(traj.t[0], traj.t[-1], int(traj.duration * hz) + 1):
+            T = forward_kinematics_np(self.robot, spline(t))
+            for p, o in enumerate(self.objects):
+                Tl = T[self.hulls.link_index[p]]
+                o.setTransform(fcl.Transform(Tl[:3, :3], Tl[:3, 3]))
+                r = fcl.DistanceResult()
+                d = fcl.distance(o, box, self.request, r)
+                if d < best:
+                    best, towards = d, np.asarray(r.nearest_points[0]) - np.asarray(r.nearest_points[1])
+        return best, towards / max(np.linalg.norm(towards), 1e-300)
+
+    def place(self, traj, scene, rng, lo_mm, hi_mm):
+        """Move each box along the box-to-hull direction so that the hulls clear it (on a 200 Hz
+        grid) by rho plus a random lo_mm..hi_mm; returns the scene and how many boxes moved."""
+        lo, hi, moved = scene.lo.copy(), scene.hi.copy(), 0
+        for b in range(scene.n_boxes):
+            target = MARGIN + rng.uniform(lo_mm, hi_mm) / 1000
+            for _ in range(4):  # the nearest points move as the box does: a few steps
+                d, u = self(traj, lo[b], hi[b], 200)
+                if not d > target + 1e-4:
+                    break
+                lo[b] += u * (d - target)
+                hi[b] += u * (d - target)
+            moved += int(0 < d <= target + 1e-4)
+        return Scene(lo=lo, hi=hi, box_names=scene.box_names, name=scene.name), moved
+
+
+def short_trajectory(rng, robot, k):
+    """A 1 s move of up to 0.3 rad per joint through 3 waypoints (a local motion, as near an
+    obstacle)."""
+    mid = (robot.q_lower + robot.q_upper) / 2
+    half = (robot.q_upper - robot.q_lower) / 2
+    q0 = mid + half * rng.uniform(-0.5, 0.5, robot.n_joints)
+    q = q0 + np.cumsum(rng.uniform(-0.15, 0.15, (3, robot.n_joints)), axis=0)
+    qd = rng.normal(0, 0.2, q.shape)
+    qd[0] = qd[-1] = 0.0
+    return Trajectory(t=np.array([0.0, 0.5, 1.0]), q=q, qd=qd, joint_names=robot.active_joint_names, id=f"traj{k:03d}")
+
+
+DEPTH = 6
+
+
+@pytest.fixture(scope="module")
+def dataset(model):
+    """20 one-second trajectories, each with a box the hulls clear by rho + 0.5..12 mm (or, in a
+    few, a box the arm sweeps through)."""
+    robot, capsules, hulls = model
+    rng = np.random.default_rng(12)
+    measure = HullClearance(robot, hulls)
+    trajs, scenes = [], []
+    for k in range(20):
+        t = short_trajectory(rng, robot, k)
+        trajs.append(t)
+        scenes.append(measure.place(t, near_scene(rng, robot, capsules, t, k, n_boxes=1), rng, 0.5, 12)[0])
+    return trajs, scenes
+
+
+@pytest.fixture(scope="module")
+def larc(dataset, model):
+    robot, capsules, _ = model
+    return lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
+
+
+def test_reference_larc_and_fine_agree(dataset, model, larc):
+    """The NumPy reference (Algorithm 1 with the cascade) and batched LARC evaluate the same
+    intervals and take the same decision on each; a trajectory fine certifies LARC certifies."""
+    robot, capsules, _ = model
+    ref = lj.certify(*dataset, robot, capsules, method="reference", margin=MARGIN, max_depth=DEPTH)
+    assert 3 < larc.certified.sum() < 20
+    assert (larc.leaves.stage == 2).sum() > 20  # the hull stage decided many leaves
+    assert (ref.certified == larc.certified).all()
+    assert (ref.frontier == larc.frontier).all()
+    assert (ref.leaves.stage == larc.leaves.stage).all()
+    np.testing.assert_allclose(ref.leaves.clearance_m, larc.leaves.clearance_m, rtol=0, atol=1e-9)
+    fine = lj.certify(*dataset, robot, capsules, method="fine", margin=MARGIN, max_depth=DEPTH)
+    assert ((~fine.certified) | larc.certified).all()
+
+
+def test_cascade_certifies_what_the_capsules_do_and_more(dataset, model, larc):
+    robot, capsules, _ = model
+    caps = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH, enclosure="capsules")
+    assert ((~caps.certified) | larc.certified).all()
+    assert larc.certified.sum() > caps.certified.sum()
+    assert (caps.leaves.stage <= 1).all() and caps.enclosure == "capsules" and larc.enclosure == "hull"
+    assert (larc.evaluations <= caps.evaluations).all()  # a leaf passing either test stops bisecting
+
+
+def test_interval_pairs_matches_reference(dataset, model):
+    robot, capsules, hulls = model
+    trajs, scenes = dataset
+    lo, hi, mask = pad_scenes(scenes[:10])
+    rng = np.random.default_rng(1)
+    for k in range(10):
+        traj = trajs[k]
+        a, b = np.sort(rng.uniform(traj.t[0], traj.t[-1], 2))
+        bounds = trajectory_rounding(traj, robot, capsules, np.float64, hulls)
+        ar, br = rebase_ends(a, b, float(bounds.offset_s))
+        with jax.enable_x64(True):
+            spline = HermiteSpline.from_waypoints(traj.t - float(bounds.offset_s), traj.q, traj.qd)
+            d = interval_pairs(robot, capsules, hulls, spline, lo[k], hi[k], mask[k], ar, br, MARGIN, bounds)
+        r = interval_pairs_np(robot, capsules, hulls, traj, scenes[k], a, b, MARGIN, bounds)
+        nb = scenes[k].n_boxes
+        np.testing.assert_allclose(np.asarray(d.g_capsule)[:, :nb], r.g_capsule[:, :nb], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(d.g_upper)[:, :nb], r.g_upper[:, :nb], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(d.T_part), r.T_part, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(d.motion_b), r.motion_b, atol=1e-15)
+
+
+def test_select_and_combine_on_named_cases():
+    """Two links (capsules 0, 1 on link 0; capsule 2 on link 1), one part each, two boxes."""
+    links = Links(of_capsule=np.array([0, 0, 1]), of_part=np.array([0, 1]), n_links=2)
+    inf = np.inf
+    g_cap = np.array([[[0.004, inf], [-0.002, 0.010], [0.020, 0.030]],   # link 0 fails box 0
+                      [[0.004, inf], [-0.002, 0.010], [0.020, np.nan]],  # ... and a NaN
+                      [[-0.05, 0.01], [-0.04, 0.01], [0.02, 0.02]]])     # link 0 fails; hull cannot pass
+    g_up = np.array([[[0.01, inf], [0.5, 0.5]], [[0.01, inf], [0.5, 0.5]], [[-0.001, 0.5], [0.5, 0.5]]])
+    guard_c, guard_p = np.zeros((3, 3)), np.zeros(2)
+    tried, triples = select_pairs(links, g_cap, g_up)
+    assert tried[0, 0, 0] and not tried[0, 0, 1] and not tried[0, 1].any()
+    assert not tried[2].any()  # the upper bound says the hull cannot pass: skipped
+    assert triples.tolist() == [[0, 0, 0], [1, 0, 0]]
+    g, guard, cap, box, passed = combine(links, g_cap, guard_c, tried, triples, np.array([0.003, 0.003]),
+                                         guard_p[triples[:, 1]])
+    assert passed.tolist() == [True, False, False]
+    assert g[0] == pytest.approx(0.003) and math.isnan(g[1])  # NaN never certifies
+    assert cap[2] == 0 and box[2] == 0 and g[2] == pytest.approx(-0.05)
+    # Guards: the hull passes only above its own guard; the recorded (g, guard) decide the leaf.
+    g, guard, _, _, passed = combine(links, g_cap, guard_c, tried, triples, np.array([0.003, 0.003]),
+                                     np.array([0.004, 0.0]))
+    assert not passed[0] and g[0] == pytest.approx(0.003) and guard[0] == pytest.approx(0.004)
+    g, guard, _, _, passed = combine(links, g_cap, guard_c, tried, triples, np.array([-0.001, 0.003]),
+                                     guard_p[triples[:, 1]])
+    assert not passed[0] and g[0] == pytest.approx(-0.001)  # the hull fails too: max of the two excesses
+
+
+def test_soundness_against_dense_sampling_of_the_hulls(model, dataset, larc):
+    """Whenever the cascade certifies, the link hulls (which contain the meshes) stay more than
+    rho from every box at 2 kHz (python-fcl distance of the hull meshes). The boxes are near
+    misses: the hulls pass rho + 0.2..3 mm from them, where the capsules fail."""
+    robot, capsules, hulls = model
+    measure = HullClearance(robot, hulls)
+    rng = np.random.default_rng(21)
+    checked = near = 0
+    for k in range(8):
+        traj = short_trajectory(rng, robot, 100 + k)
+        scene, moved = measure.place(traj, near_scene(rng, robot, capsules, traj, k, n_boxes=1), rng, 0.2, 3)
+        near += moved
+        res = lj.certify(traj, scene, robot, capsules, margin=MARGIN, max_depth=10)[0]
+        if res.certified:
+            checked += 1
+            assert measure(traj, scene.lo[0], scene.hi[0], 2000)[0] > MARGIN, traj.id
+    # The dataset's certificates too (rho + 0.5..12 mm).
+    for traj, scene, ok in zip(*dataset, larc.certified):
+        if ok:
+            checked += 1
+            assert measure(traj, scene.lo[0], scene.hi[0], 2000)[0] > MARGIN, traj.id
+    assert checked >= 6 and near >= 5
