@@ -22,12 +22,14 @@ per-trajectory rounding bounds are float64.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, Sequence
 
 import jax
 import numpy as np
 
 from .cascade import Links, combine, hull_pair_clearance, interval_pairs, select_pairs
+from .clearance import BROAD_PHASE_K
 from .compilation import cached_kernel_call
 from .enclosure.capsule import CapsuleModel
 from .enclosure.hull import HullModel
@@ -92,24 +94,48 @@ def _call(fn, args, on_compile: Callable[[bool], None] | None):
             on_compile(False)
 
 
-@jax.jit
-def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
+def _intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin, k):
     """Evaluate F intervals: interval i belongs to trajectory ``traj[i]`` in scene ``scene[i]``.
-    Only ``(g, guard, capsule, box)`` leave the call (XLA drops the record's other fields)."""
+    Only ``(g, guard, capsule, box, exact)`` leave the call (XLA drops the record's other fields)."""
 
-    def one(k, s, ai, bi):
-        spline = SplineRow(splines, k)  # read in place, not copied per interval
-        bnd = jax.tree.map(lambda x: x[k], bounds)
-        ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
-        return ev.g, ev.guard, ev.capsule, ev.box
+    def one(t, s, ai, bi):
+        spline = SplineRow(splines, t)  # read in place, not copied per interval
+        bnd = jax.tree.map(lambda x: x[t], bounds)
+        ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd, k)
+        return ev.g, ev.guard, ev.capsule, ev.box, ev.exact
 
     return jax.vmap(one)(traj, scene, a, b)
 
 
-def _evaluate_intervals_cached(*args):
-    """:func:`_evaluate_intervals`, through its export kept in the compilation cache when that
-    is on (:func:`larc_jax.compilation.cached_kernel_call`; one device)."""
-    return cached_kernel_call(_evaluate_intervals, args)
+@jax.jit
+def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
+    """The interval test with every capsule-box pair exact."""
+    return _intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin, None)
+
+
+@jax.jit
+def _evaluate_intervals_broad(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b,
+                              margin):
+    """The interval test through the broad phase (:data:`~larc_jax.clearance.BROAD_PHASE_K` exact
+    pairs per interval); intervals whose ``exact`` is False are evaluated again all-pairs."""
+    return _intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin,
+                      BROAD_PHASE_K)
+
+
+_CACHED_CALLS: dict = {}
+
+
+def _cached(kernel):
+    """``kernel`` through its export kept in the compilation cache when that is on
+    (:func:`larc_jax.compilation.cached_kernel_call`; one device). One callable per kernel, so
+    that :func:`_call` recognises a shape it has seen."""
+    if kernel not in _CACHED_CALLS:
+        _CACHED_CALLS[kernel] = functools.partial(_cached_call, kernel)
+    return _CACHED_CALLS[kernel]
+
+
+def _cached_call(kernel, *args):
+    return cached_kernel_call(kernel, args)
 
 
 @jax.jit
@@ -211,12 +237,14 @@ class Batch:
         return (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi, self.box_mask, self.bounds,
                 traj, self.scene_of[traj], ar, br, self.margin)
 
-    def cost_analysis(self, traj, depth, index) -> dict:
+    def cost_analysis(self, traj, depth, index, broad_phase: bool = True) -> dict:
         """XLA's cost analysis (``flops``, ``bytes accessed``, ...) of the compiled kernel for
-        these intervals (one call, no padding): for benchmarks."""
+        these intervals (one call, no padding; the broad-phase kernel, or the all-pairs one):
+        for benchmarks."""
         a, b = self.endpoints(traj, depth, index)
+        kernel = _evaluate_intervals_broad if broad_phase else _evaluate_intervals
         with jax.enable_x64(True):
-            cost = _evaluate_intervals.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
+            cost = kernel.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
         return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
 
     def _bucketed(self, call, items, on_chunk=None, buckets=BUCKETS, on_compile=None):
@@ -246,12 +274,24 @@ class Batch:
         ``n`` intervals, ``on_compile(True/False)`` around a compiling call."""
         a, b = self.endpoints(traj, depth, index)
         ar, br = self._rebased(traj, a, b)
-        kernel = _evaluate_intervals if len(self.devices) > 1 else _evaluate_intervals_cached
-        g, guard, cap, box = self._bucketed(
-            lambda t, sc, x, y: _call(kernel, (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
-                                               self.box_mask, self.bounds, t, sc, x, y, self.margin), on_compile),
-            [traj, self.scene_of[traj], ar, br], on_chunk)
+        run = self._kernel(_evaluate_intervals_broad if self.use_broad_phase else _evaluate_intervals, on_compile)
+        g, guard, cap, box, exact = self._bucketed(run, [traj, self.scene_of[traj], ar, br], on_chunk)
+        redo = np.flatnonzero(~exact.astype(bool))
+        if len(redo):  # the broad phase could not prove its pick: every pair, exactly
+            g[redo], guard[redo], cap[redo], box[redo], _ = self._bucketed(
+                self._kernel(_evaluate_intervals, on_compile),
+                [traj[redo], self.scene_of[traj[redo]], ar[redo], br[redo]])
         return a, b, g, guard, cap.astype(np.int64), box.astype(np.int64)
+
+    @property
+    def use_broad_phase(self) -> bool:
+        """The broad phase pays when a scene has more capsule-box pairs than it evaluates exactly."""
+        return self.capsules.n_capsules * self.box_lo.shape[1] > 2 * BROAD_PHASE_K
+
+    def _kernel(self, kernel, on_compile):
+        call = kernel if len(self.devices) > 1 else _cached(kernel)
+        return lambda t, sc, x, y: _call(call, (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
+                                                self.box_mask, self.bounds, t, sc, x, y, self.margin), on_compile)
 
     def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                          on_compile: Callable[[bool], None] | None = None):

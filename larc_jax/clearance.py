@@ -60,7 +60,8 @@ def segment_box_lower_bound(p0, p1, lo, hi) -> jax.Array:
     return bound - 8 * eps * (1 + scale) * (1 + bound)
 
 
-def min_clearance(p_a, p_b, offset_seg, lo, hi, offset_box, mask, k: int | None = BROAD_PHASE_K):
+def min_clearance(p_a, p_b, offset_seg, lo, hi, offset_box, mask, k: int | None = BROAD_PHASE_K,
+                  dist_scale=1.0, guard_seg=None):
     """``(g, seg, box, exact)`` for one configuration (module docstring).
 
     Args:
@@ -68,38 +69,54 @@ def min_clearance(p_a, p_b, offset_seg, lo, hi, offset_box, mask, k: int | None 
       offset_seg: (S,) subtracted from each segment's distances (e.g. r + b + rho), m.
       lo, hi: (B, 3) boxes, m; offset_box: (B,) subtracted per box, m; mask: (B,) real boxes.
       k: pairs that get the exact distance (static); ``None``: every pair exact.
+      dist_scale: a positive factor applied to every distance first (e.g. the interval test's
+        rounding deflation); distances and bounds are cast to ``offset_seg``'s dtype before it.
+      guard_seg: (S,) per-segment guard: the pair chosen minimises ``g - guard_seg[s]`` (the
+        interval test's rounding guards); default 0.
 
-    Returns ``g`` (+inf without real boxes), the pair's segment and box indices, and whether
-    ``g`` is certainly the all-pairs minimum (always True for ``k=None``).
+    Returns ``g = dist * dist_scale - offset_seg[s] - offset_box[b]`` of the chosen pair (+inf
+    without real boxes), its segment and box indices, and whether it is certainly the pair the
+    all-pairs computation chooses (always True for ``k=None``). Scaling and subtracting are
+    monotone under rounding, so the bounds stay below the values they bound.
     """
     S, B = p_a.shape[0], lo.shape[0]
-    inf = jnp.asarray(jnp.inf, jnp.result_type(p_a, lo, 0.0))
+    dt = jnp.result_type(offset_seg, 0.0)
+    inf = jnp.asarray(jnp.inf, dt)
+    guard = jnp.zeros((S,), dt) if guard_seg is None else guard_seg
+
+    def value(dist, s, b):
+        return dist.astype(dt) * dist_scale - offset_seg[s] - offset_box[b]
+
     if k is None or k >= S * B:
         per_box = jax.vmap(segment_box_distance, in_axes=(None, None, 0, 0))
         dist = jax.vmap(per_box, in_axes=(0, 0, None, None))(p_a, p_b, lo, hi)
-        g_pair = dist - offset_seg[:, None] - offset_box[None, :]
-        g_pair = jnp.where(mask[None, :], g_pair, inf).reshape(-1)
-        flat = jnp.argmin(g_pair)
-        return g_pair[flat], flat // B, flat % B, jnp.asarray(True)
+        g_pair = jnp.where(mask[None, :], dist.astype(dt) * dist_scale - offset_seg[:, None] - offset_box[None, :], inf)
+        flat = jnp.argmin((g_pair - guard[:, None]).reshape(-1))
+        return g_pair.reshape(-1)[flat], flat // B, flat % B, jnp.asarray(True)
     per_box = jax.vmap(segment_box_lower_bound, in_axes=(None, None, 0, 0))
     lb = jax.vmap(per_box, in_axes=(0, 0, None, None))(p_a, p_b, lo, hi)
-    lam = jnp.where(mask[None, :], lb - offset_seg[:, None] - offset_box[None, :], inf).reshape(-1)
-    chosen, exact_g = [], []
+    lam = lb.astype(dt) * dist_scale - offset_seg[:, None] - offset_box[None, :] - guard[:, None]
+    lam = jnp.where(mask[None, :], lam, inf).reshape(-1)
+    chosen, exact_v, exact_x = [], [], []
     iota = jnp.arange(S * B)
     for _ in range(k):
         # argmin as two plain min-reductions (XLA's variadic argmin reduce is much slower).
         i = jnp.min(jnp.where(lam == jnp.min(lam), iota, S * B - 1))
         s, b = i // B, i % B
-        e = segment_box_distance(p_a[s], p_b[s], lo[b], hi[b]) - offset_seg[s] - offset_box[b]
-        exact_g.append(jnp.where(mask[b] & (lam[i] < inf), e, inf))
+        v = value(segment_box_distance(p_a[s], p_b[s], lo[b], hi[b]), s, b)
+        real = mask[b] & (lam[i] < inf)
+        exact_v.append(jnp.where(real, v, inf))
+        exact_x.append(jnp.where(real, v - guard[s], inf))
         chosen.append(i)
         lam = jnp.where(iota == i, inf, lam)
-    exact_g, chosen = jnp.stack(exact_g), jnp.stack(chosen)
-    m = jnp.min(exact_g)
+    exact_v, exact_x, chosen = jnp.stack(exact_v), jnp.stack(exact_x), jnp.stack(chosen)
+    m = jnp.min(exact_x)
     # Ties between chosen pairs: the smallest flat index, as the all-pairs argmin picks.
-    flat = jnp.min(jnp.where(exact_g == m, chosen, S * B))
-    flat = jnp.where(flat == S * B, chosen[0], flat)  # m is NaN: keep the first choice
-    return m, flat // B, flat % B, m <= jnp.min(lam)
+    flat = jnp.min(jnp.where(exact_x == m, chosen, S * B))
+    pick = jnp.argmax(chosen == flat)
+    pick = jnp.where(flat == S * B, 0, pick)  # m is NaN: keep the first choice
+    flat = chosen[pick]
+    return exact_v[pick], flat // B, flat % B, m <= jnp.min(lam)
 
 
 def min_clearance_np(p_a, p_b, offset_seg, lo, hi, offset_box, mask):

@@ -104,6 +104,7 @@ import numpy as np
 
 from .enclosure.capsule import CapsuleModel, capsule_segments, capsule_segments_np
 from .errors import LarcInputError
+from .clearance import min_clearance
 from .geometry import segment_box_distance, segment_box_distance_np
 from .hermite import HermiteSpline, evaluate, evaluate_np, speed_max, speed_max_np
 from .robot import JointType, Robot
@@ -315,6 +316,10 @@ class IntervalEval:
     """(C, B) certificate clearance ``g_lk`` of every capsule and box, m (+inf for padding boxes)."""
     speed: jax.Array
     """(n,) speed bound ``omega_max + slack`` (P2) that the motion radii use."""
+    exact: jax.Array
+    """Whether (g, guard, capsule, box) are certainly those of the all-pairs test (always True
+    unless a broad phase was asked for, :mod:`larc_jax.clearance`; if False, evaluate again
+    with ``k=None``)."""
 
 
 def motion_radii(motion_a, h_cov, speed):
@@ -329,7 +334,8 @@ def motion_radii(motion_a, h_cov, speed):
 
 def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSpline,
                       box_lo: jax.Array, box_hi: jax.Array, box_mask: jax.Array,
-                      a: jax.Array, b: jax.Array, margin: jax.Array, bounds: RoundingBounds) -> IntervalEval:
+                      a: jax.Array, b: jax.Array, margin: jax.Array, bounds: RoundingBounds,
+                      k: int | None = None) -> IntervalEval:
     """The interval test on one interval ``[a, b]`` (rebased, T1) of one trajectory (eq. 4).
 
     Args:
@@ -338,6 +344,9 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
       spline: one trajectory's Hermite curve on rebased knots (float64).
       box_lo, box_hi: (B, 3) boxes, m, in the geometry dtype; box_mask: (B,) which are real.
       a, b: interval ends, s (``a <= b``); margin: rho, m; bounds: :func:`trajectory_rounding`.
+      k: static; ``None``: every capsule-box pair gets the exact distance; an int: a sound
+        broad phase picks the ``k`` most threatening pairs (:func:`~larc_jax.clearance.min_clearance`)
+        and ``exact`` says whether the result is certainly the all-pairs one.
     """
     eps = float(jnp.finfo(spline.knots().dtype).eps)
     gdtype = robot.T_parent_joint.dtype
@@ -356,18 +365,26 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
     dist = jax.vmap(per_box, in_axes=(0, 0, None, None))(p_world_a, p_world_b, box_lo, box_hi)
     dist = dist.astype(q_mid.dtype) * (1 - K_DIST_REL * eps_g)  # G2
     shell = (capsules.radius + motion_b + margin) * (1 + 2 * eps)  # G4
-    g_cb = jnp.where(box_mask[None, :], dist - shell[:, None], jnp.inf)  # eq. 7
-    flat = jnp.argmin(g_cb - bounds.guard_m[:, None])
+    g_cb = jnp.where(box_mask[None, :], dist - shell[:, None], jnp.inf)  # eq. 7 (unused outputs cost nothing)
     n_boxes = box_lo.shape[0]
-    capsule, box = flat // n_boxes, flat % n_boxes
+    if k is None:
+        flat = jnp.argmin(g_cb - bounds.guard_m[:, None])
+        capsule, box = flat // n_boxes, flat % n_boxes
+        g_pick, exact = g_cb[capsule, box], jnp.asarray(True)
+    else:
+        # The same g_lk (eq. 7, G2, G4) for the chosen pair; the bounds of the others are
+        # monotone images of a distance lower bound (larc_jax.clearance).
+        g_pick, capsule, box, exact = min_clearance(
+            p_world_a, p_world_b, shell, box_lo, box_hi, jnp.zeros(n_boxes, shell.dtype), box_mask, k,
+            dist_scale=1 - K_DIST_REL * eps_g, guard_seg=bounds.guard_m)
     finite = (
         jnp.isfinite(q_mid).all() & jnp.isfinite(omega_max).all() & jnp.isfinite(motion_b).all()
         & jnp.isfinite(p_world_a).all() & jnp.isfinite(p_world_b).all()
     )
-    g = jnp.where(finite, g_cb[capsule, box], jnp.nan)  # NaN never certifies
+    g = jnp.where(finite, g_pick, jnp.nan)  # NaN never certifies
     return IntervalEval(g=g, guard=bounds.guard_m[capsule], capsule=capsule, box=box, t_mid=t_mid, h=h,
                         h_cov=h_cov, q_mid=q_mid, omega_max=omega_max, motion_b=motion_b,
-                        p_world_a=p_world_a, p_world_b=p_world_b, g_pairs=g_cb, speed=speed)
+                        p_world_a=p_world_a, p_world_b=p_world_b, g_pairs=g_cb, speed=speed, exact=exact)
 
 
 def interval_clearance(robot, capsules, spline, box_lo, box_hi, box_mask, a, b, margin, bounds):
@@ -410,7 +427,7 @@ def evaluate_interval_np(robot: Robot, capsules: CapsuleModel, traj, scene, t0: 
     g = g if finite else math.nan
     return IntervalEval(g=g, guard=float(guard[pair[0]]), capsule=pair[0], box=pair[1], t_mid=t_mid, h=h,
                         h_cov=h_cov, q_mid=q_mid, omega_max=omega_max, motion_b=motion_b,
-                        p_world_a=p_a, p_world_b=p_b, g_pairs=g_pairs, speed=speed)
+                        p_world_a=p_a, p_world_b=p_b, g_pairs=g_pairs, speed=speed, exact=True)
 
 
 def interval_clearance_np(robot, capsules, traj, scene, t0: float, t1: float, margin: float, bounds=None):

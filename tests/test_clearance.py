@@ -56,3 +56,27 @@ def test_no_real_boxes_and_lower_bound_edge_cases():
         lb = jax.jit(jax.vmap(segment_box_lower_bound))(*(np.array(c, float) for c in zip(*cases)))
     for (p0, p1, l, h), bound in zip(cases, np.asarray(lb)):
         assert bound <= segment_box_distance_np(p0, p1, l, h)
+
+
+def test_broad_phase_changes_no_result(monkeypatch):
+    """certify with the broad-phase kernel (and its all-pairs fallback) gives bit-identical
+    leaves to the all-pairs kernel on random trajectories and scenes with many boxes."""
+    import larc_jax as lj
+    from larc_jax import batch as B
+    from larc_jax.results import LEAF_COLUMNS
+
+    from .test_certify import random_scene, random_trajectory
+
+    robot = lj.load_robot()
+    capsules = lj.load_capsules(lj.default_capsule_path(), robot)
+    rng = np.random.default_rng(5)
+    trajs = [random_trajectory(rng, robot, k) for k in range(24)]
+    scenes = [random_scene(rng, k) for k in range(24)]
+    assert max(s.n_boxes for s in scenes) * capsules.n_capsules > 2 * B.BROAD_PHASE_K
+    kw = dict(margin=0.01, max_depth=5, enclosure="capsules")
+    broad = lj.certify(trajs, scenes, robot, capsules, **kw).leaves_dataframe()
+    monkeypatch.setattr(B.Batch, "use_broad_phase", property(lambda self: False))
+    full = lj.certify(trajs, scenes, robot, capsules, **kw).leaves_dataframe()
+    assert len(broad) > 100
+    for col in LEAF_COLUMNS:
+        assert (broad[col].astype(str) == full[col].astype(str)).all(), col
