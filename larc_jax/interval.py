@@ -98,14 +98,13 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .enclosure.capsule import CapsuleModel, capsule_segments, capsule_segments_np
 from .errors import LarcInputError
 from .geometry import segment_box_distance, segment_box_distance_np
 from .hermite import HermiteSpline, evaluate, evaluate_np, speed_max, speed_max_np
+from .lazy_jax import jax, jnp, pytree_dataclass
 from .robot import JointType, Robot
 
 __all__ = [
@@ -137,7 +136,6 @@ K_DIST_ABS = 64
 
 _U64 = float(np.finfo(np.float64).eps) / 2
 _EPS64 = float(np.finfo(np.float64).eps)
-_HIGHEST = jax.lax.Precision.HIGHEST
 
 
 def geometry_dtype(dtype) -> np.dtype:
@@ -187,7 +185,7 @@ def rebase_ends(a, b, offset):
 # ----------------------------------------------------------------------------------------------
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class RoundingBounds:
     """What the error budget gives one trajectory (arrays; a batch adds a leading axis)."""
@@ -263,7 +261,7 @@ def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.flo
 # ----------------------------------------------------------------------------------------------
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class IntervalEval:
     """Everything the interval test computed on one interval (JAX or NumPy arrays)."""
@@ -318,7 +316,7 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
     omega_max = speed_max(spline, lo, hi)  # eq. 5
     n = omega_max.shape[-1]
     speed = omega_max + bounds.omega_slack  # P2
-    motion_b = h_cov * jnp.matmul(capsules.motion_a, speed, precision=_HIGHEST) * (1 + (n + 64) * eps)  # P3
+    motion_b = h_cov * jnp.matmul(capsules.motion_a, speed, precision=jax.lax.Precision.HIGHEST) * (1 + (n + 64) * eps)  # P3
     p_world_a, p_world_b = capsule_segments(robot, capsules, q_mid.astype(gdtype))
     per_box = jax.vmap(segment_box_distance, in_axes=(None, None, 0, 0))
     dist = jax.vmap(per_box, in_axes=(0, 0, None, None))(p_world_a, p_world_b, box_lo, box_hi)
