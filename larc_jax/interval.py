@@ -117,6 +117,7 @@ __all__ = [
     "trajectory_rounding",
     "time_offset",
     "rebase_ends",
+    "dyadic_ends",
     "geometry_dtype",
     "K_TIME", "K_POS", "K_SPEED", "K_FK", "K_DIST_REL", "K_DIST_ABS",
 ]
@@ -178,6 +179,16 @@ def rebase_ends(a, b, offset):
     sa, ea = _two_diff(a, offset)
     sb, eb = _two_diff(b, offset)
     return np.where(ea < 0, np.nextafter(sa, -np.inf), sa), np.where(eb > 0, np.nextafter(sb, np.inf), sb)
+
+
+def dyadic_ends(t_start, t_end, depth, index):
+    """Ends of interval ``index`` of the ``2**depth`` equal parts of ``[t_start, t_end]``
+    (NumPy, elementwise). The fractions are exact; the horizon ends are taken verbatim."""
+    n = np.ldexp(1.0, depth)
+    f0, f1 = index / n, (index + 1) / n
+    a = np.where(f0 == 0.0, t_start, t_start + (t_end - t_start) * f0)
+    b = np.where(f1 == 1.0, t_end, t_start + (t_end - t_start) * f1)
+    return a, b
 
 
 # ----------------------------------------------------------------------------------------------

@@ -147,6 +147,8 @@ class DatasetResult:
     them from the persistent cache, :mod:`larc_jax.compilation`)."""
     excluded_links: tuple[str, ...] = ()
     """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
+    dtype: str = "float64"
+    """Geometry dtype of the run (``certify(dtype=...)``; the guard accounts for it)."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
