@@ -6,8 +6,10 @@ Typical use::
     robot = lj.load_robot()                                   # PIPER (LARC_PIPER_DESCRIPTION)
     capsules = lj.load_capsules(lj.default_capsule_path(), robot)
     trajs = [lj.read_trajectory(p, robot) for p in paths]
-    result = lj.certify(trajs, lj.read_scene("scene.yaml"), robot, capsules)
+    scene = lj.read_scene("scene.yaml")
+    result = lj.certify(trajs, scene, robot, capsules)
     df = result.to_dataframe()
+    lj.write_certificate("cert.json", result, trajs, scene, robot, capsules)  # re-check: lj.verify_certificate
 """
 
 import sys
@@ -23,6 +25,7 @@ __all__ = [
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities", "enable_compile_cache",
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
+    "write_certificate", "verify_certificate", "Refuted",
 ]
 
 _loaded = False
@@ -55,6 +58,8 @@ def _load() -> None:
     from .trajectory import Trajectory, finite_difference_velocities
     from .trajectory_files import read_trajectory, write_trajectory
     from .urdf import load_robot
+    from .certificate import write_certificate
+    from .verify import Refuted, verify_certificate  # last: it defers JAX, which is loaded by now
     globals().update({k: v for k, v in locals().items() if k in __all__})
     _loaded = True
 

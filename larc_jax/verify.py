@@ -111,6 +111,13 @@ def _override(given, n: int, what: str) -> list:
     return list(given)
 
 
+def _sha256(path, what: str) -> str:
+    try:
+        return file_sha256(path)
+    except OSError as exc:
+        raise LarcInputError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+
+
 def _check_hash(have: str, want, what: str) -> None:
     if want is not None and have != want:
         raise Refuted(f"{what} has sha256 {have}, the certificate records {want}")
@@ -123,7 +130,7 @@ def _load_robot(doc: dict, robot_path, excluded: list[str]):
     file = robot_file_path(path)
     if not file.is_file():
         raise LarcInputError(f"{file}: robot file not found")
-    _check_hash(file_sha256(file), _get(doc, "sha256", where, str), f"robot file {file}")
+    _check_hash(_sha256(file, "robot file"), _get(doc, "sha256", where, str), f"robot file {file}")
     try:
         robot, capsules = load_robot_file(path)
     except GeometryChanged as exc:
@@ -148,9 +155,9 @@ def _load_scenes(docs: list, files: list, robot) -> list:
         where = f"scenes[{k}]"
         path = given if given is not None else _get(doc, "file", where)
         if path is None:
-            raise LarcInputError(f"{where}: certified from arrays through the Python API; give its file with --scene")
+            raise LarcInputError(f"{where}: certified from arrays through the Python API; give its file (larc verify --scene, verify_certificate(scenes=...))")
         if doc.get("sha256") is not None:
-            _check_hash(file_sha256(path), doc["sha256"], f"scene file {path}")
+            _check_hash(_sha256(path, "scene file"), doc["sha256"], f"scene file {path}")
         scene = read_scene(path, frame=robot.link_names[0])
         _check_hash(scene_sha256(scene), _get(doc, "arrays_sha256", where, str), f"scene {path} (its boxes)")
         scenes.append(scene)
@@ -196,8 +203,8 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, capsules, margin: f
     lv = _get(doc, "leaves", where, dict)
     lw = f"{where}.leaves"
     depth, index, capsule = _ints(lv, "depth", lw), _ints(lv, "index", lw), _ints(lv, "capsule", lw)
-    t0, t1 = _floats(lv, "t0", lw), _floats(lv, "t1", lw)
-    g_stored, guard_stored = _floats(lv, "clearance_m", lw), _floats(lv, "guard_m", lw)
+    t0, t1 = _floats(lv, "t0", lw).tolist(), _floats(lv, "t1", lw).tolist()
+    g_stored, guard_stored = _floats(lv, "clearance_m", lw).tolist(), _floats(lv, "guard_m", lw).tolist()
     flags = _get(lv, "certified", lw, list)
     if len({len(x) for x in (depth, index, capsule, t0, t1, g_stored, guard_stored, flags)}) != 1:
         raise LarcInputError(f"{lw}: the leaf columns have different lengths")
@@ -210,7 +217,7 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, capsules, margin: f
         leaf = f"trajectory '{tid}' leaf {j} (t=[{t0[j]!r}, {t1[j]!r}], depth {depth[j]})"
         if flags[j] is not True:
             raise Refuted(f"{leaf}: marked not certified in a trajectory claimed certified")
-        ev = evaluate_interval_np(robot, capsules, traj, scene, float(t0[j]), float(t1[j]), margin, bounds)
+        ev = evaluate_interval_np(robot, capsules, traj, scene, t0[j], t1[j], margin, bounds)
         g, guard = float(ev.g), float(ev.guard)
         if not g > guard:  # NaN fails
             raise Refuted(f"{leaf}: fails the reference test: clearance {g!r} m is not above the guard {guard!r} m "
@@ -260,9 +267,9 @@ def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> V
         tpath = given if given is not None else _get(tdoc, "file", where)
         if tpath is None:
             raise LarcInputError(f"{where} ('{tid}'): certified from arrays through the Python API; give its file "
-                                 "with --trajectory")
+                                 "(larc verify --trajectory, verify_certificate(trajectories=...))")
         if tdoc.get("sha256") is not None:
-            _check_hash(file_sha256(tpath), tdoc["sha256"], f"trajectory file {tpath}")
+            _check_hash(_sha256(tpath, "trajectory file"), tdoc["sha256"], f"trajectory file {tpath}")
         traj = read_trajectory(tpath, rob, velocities=tdoc.get("velocities") or "recorded")
         _check_hash(trajectory_sha256(traj), _get(tdoc, "arrays_sha256", where, str), f"trajectory '{tid}' ({tpath})")
         s = _get(tdoc, "scene", where, int)
