@@ -88,3 +88,17 @@ def test_larc_refuses_every_case(corpus, robot, capsules):
         bad = ~rows.certified[sl]
         t0, t1 = rows.t0[sl][bad], rows.t1[sl][bad]
         assert np.any((t0 <= c["witness_t"]) & (c["witness_t"] <= t1)), c["id"]
+
+
+def test_readme_states_the_generated_counts(corpus):
+    summary, cases, _, _ = corpus
+    readme = (ROOT / "README.md").read_text()
+    for phrase in (f"holds {summary['cases']} PIPER trajectories",
+                   f"audit calls {summary['sampled_clear']} of {summary['cases']} clear",
+                   f"finds all {summary['within_margin_between_samples']} within",
+                   f"({summary['collide_between_samples']} of them in collision)",
+                   f"LARC refuses {summary['larc_refused']} of {summary['cases']}",
+                   f"ρ = {summary['margin_m'] * 1000:g} mm"):
+        assert phrase in " ".join(readme.split()), phrase
+    speeds = [c["speed_at_witness_m_s"] for c in cases]
+    assert 5 <= min(speeds) and max(speeds) <= 13  # "tip speeds of 5–13 m/s"
