@@ -566,7 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--certificate", metavar="OUT.json",
                    help="write a certificate file: the leaf cover (exact floats), parameters, rounding bounds "
                         "and SHA-256 of the robot file, meshes, scene and trajectories; check it with "
-                        "`larc verify OUT.json`")
+                        "'larc verify OUT.json'")
     c.add_argument("--leaves", metavar="OUT.parquet",
                    help="write the full leaf cover, one row per leaf (id, depth, index, t0, t1, "
                         "clearance_m, certified, capsule, box); .parquet or .csv by suffix")
@@ -587,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser(
         "verify", parents=common, help="re-check a certificate file without JAX (NumPy float64 references)",
-        description="Re-check a certificate written by `larc certify --certificate`: the hashes of the robot "
+        description="Re-check a certificate written by 'larc certify --certificate': the hashes of the robot "
                     "file, URDF, meshes, scene and trajectories; that the leaves of every trajectory claimed "
                     "certified tile its horizon; that every such leaf passes the NumPy float64 interval test, "
                     "recomputed from the files. Exit status: 0 verified, 1 refuted (the first failing leaf is "
