@@ -232,3 +232,29 @@ def test_checker_process_never_imports_jax(cli_cert):
     proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, env=env,
                           timeout=120)
     assert proc.returncode == EXIT_OK, proc.stderr
+
+
+def test_reference_method_with_an_ignored_link_verifies(tmp_path, capsys):
+    path = tmp_path / "ref.json"
+    assert main(["certify", REACH, "--scene", CELL, "--method", "reference", "--ignore-link", "base_link",
+                 "--certificate", str(path), "-q"]) == EXIT_OK
+    doc = json.loads(path.read_text())
+    assert doc["parameters"]["method"] == "reference" and doc["parameters"]["excluded_links"] == ["base_link"]
+    assert _verify(path) == EXIT_OK
+    edited = _edited(tmp_path, doc, lambda d: d["parameters"].update(excluded_links=[]))
+    assert _verify(edited) == EXIT_REFUTED  # the capsule list no longer matches
+    assert "capsule names" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_float32_certificate_verifies(tmp_path, robot, capsules):
+    import larc_jax as lj
+
+    traj = lj.read_trajectory(REACH, robot)
+    scene = lj.read_scene(CELL)
+    result = lj.certify([traj], scene, robot, capsules, max_depth=int(DEPTH), dtype=np.float32)
+    assert result.dtype == "float32" and result.certified[0]
+    path = lj.write_certificate(tmp_path / "f32.json", result, [traj], scene, robot, capsules,
+                                trajectory_files=[REACH], scene_files=[CELL])
+    report = lj.verify_certificate(path)
+    assert report.checked == 1 and report.min_excess_m > 0
