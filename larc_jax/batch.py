@@ -24,13 +24,13 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable, Sequence
 
-import jax
 import numpy as np
 
 from .compilation import cached_kernel_call
 from .enclosure.capsule import CapsuleModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
+from .lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
 from .robot import Robot
 from .scene import Scene, pad_scenes
 

@@ -464,7 +464,10 @@ def _cmd_verify(args) -> int:
     except Refuted as exc:
         print(f"larc: REFUTED: {args.certificate}: {exc}", file=sys.stderr)
         return EXIT_REFUTED
-    if not args.quiet:
+    if not args.quiet and report.checked == 0:
+        print(f"{args.certificate}: VERIFIED: none of its {report.trajectories} trajectories is claimed certified "
+              "(nothing to re-check)")
+    elif not args.quiet:
         print(f"{args.certificate}: VERIFIED: {report.checked} of {report.trajectories} trajectories claimed "
               f"certified, {report.leaves} leaves re-checked with the NumPy float64 reference (smallest clearance "
               f"above guard {report.min_excess_m * 1000:.3f} mm, stored clearances within "

@@ -11,7 +11,9 @@ attribute access, i.e. when a kernel runs) and register their dataclasses as pyt
 By default :func:`pytree_dataclass` registers at once (importing JAX, as a plain
 ``@jax.tree_util.register_dataclass`` would). After :func:`defer_jax` (called by the checker
 before it imports anything else of the library) classes are queued instead, and registered when
-JAX is first reached through a proxy; a class defined after JAX is loaded is registered at once.
+JAX is first reached through a proxy (importing :mod:`larc_jax.batch`, or any attribute of the
+``larc_jax`` package, does); a class defined after JAX is loaded is registered at once. A process
+that deferred JAX and then hands these classes to JAX itself calls :func:`register_pytrees` first.
 """
 
 from __future__ import annotations
@@ -20,13 +22,14 @@ import functools
 import importlib
 import sys
 
-__all__ = ["jax", "jnp", "pytree_dataclass", "defer_jax", "lazy_jit"]
+__all__ = ["jax", "jnp", "pytree_dataclass", "defer_jax", "register_pytrees", "lazy_jit"]
 
 _pending: list[type] = []
 _deferred = False
 
 
-def _register_pending() -> None:
+def register_pytrees() -> None:
+    """Import JAX and register every class :func:`pytree_dataclass` has queued."""
     import jax as real_jax
 
     while _pending:
@@ -41,7 +44,7 @@ class _LazyModule:
 
     def __getattr__(self, attr: str):
         module = importlib.import_module(self._name)
-        _register_pending()
+        register_pytrees()
         value = getattr(module, attr)
         object.__setattr__(self, attr, value)
         return value
@@ -66,7 +69,7 @@ def pytree_dataclass(cls):
     """``jax.tree_util.register_dataclass`` for a frozen dataclass, deferred after :func:`defer_jax`."""
     _pending.append(cls)
     if not _deferred or "jax" in sys.modules:
-        _register_pending()
+        register_pytrees()
     return cls
 
 

@@ -258,3 +258,14 @@ def test_float32_certificate_verifies(tmp_path, robot, capsules):
                                 trajectory_files=[REACH], scene_files=[CELL])
     report = lj.verify_certificate(path)
     assert report.checked == 1 and report.min_excess_m > 0
+
+
+def test_deferred_jax_registers_the_pytrees_when_jax_is_used():
+    """After the checker deferred JAX, the first JAX module of the library registers the pytrees."""
+    code = ("import sys\nimport larc_jax\nassert 'jax' not in sys.modules\nimport larc_jax.verify\n"
+            "from larc_jax.enclosure.robot_file import load_robot_file\nrobot, caps = load_robot_file()\n"
+            "assert 'jax' not in sys.modules\nimport larc_jax.batch\nimport jax\n"
+            "assert len(jax.tree.leaves(robot)) == 5 and len(jax.tree.leaves(caps)) == 4\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
