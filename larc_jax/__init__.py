@@ -6,34 +6,14 @@ Typical use::
     robot = lj.load_robot()                                   # PIPER (LARC_PIPER_DESCRIPTION)
     capsules = lj.load_capsules(lj.default_capsule_path(), robot)
     trajs = [lj.read_trajectory(p, robot) for p in paths]
-    result = lj.certify(trajs, lj.read_scene("scene.yaml"), robot, capsules)
+    scene = lj.read_scene("scene.yaml")
+    result = lj.certify(trajs, scene, robot, capsules)
     df = result.to_dataframe()
+    lj.write_certificate("cert.json", result, trajs, scene, robot, capsules)  # re-check: lj.verify_certificate
 """
 
-from .certify import Method, certify
-from .compilation import enable_compile_cache
-from .defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
-from .enclosure import (
-    CapsuleModel,
-    capsule_segments,
-    default_capsule_path,
-    fit_capsules,
-    load_capsules,
-    load_robot_file,
-    motion_constants,
-    verify_containment,
-)
-from .errors import LarcInputError
-from .geometry import segment_box_distance, segment_box_distances
-from .hermite import HermiteSpline, speed_max
-from .interval import IntervalEval, evaluate_interval, interval_clearance
-from .results import DatasetResult, Leaf, LeafTable, TrajectoryResult
-from .robot import JointType, Robot, forward_kinematics
-from .scene import Scene, read_moveit_scene, read_scene
-from .stream import certify_stream
-from .trajectory import Trajectory, finite_difference_velocities
-from .trajectory_files import read_trajectory, write_trajectory
-from .urdf import load_robot
+import sys
+import types
 
 __version__ = "0.1.0"
 
@@ -45,4 +25,68 @@ __all__ = [
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities", "enable_compile_cache",
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
+    "write_certificate", "verify_certificate", "Refuted",
 ]
+
+_loaded = False
+
+
+def _load() -> None:
+    """Import the public API into this namespace (on first use: see :func:`__getattr__`)."""
+    global _loaded
+    from .certify import Method, certify
+    from .compilation import enable_compile_cache
+    from .defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
+    from .enclosure import (
+        CapsuleModel,
+        capsule_segments,
+        default_capsule_path,
+        fit_capsules,
+        load_capsules,
+        load_robot_file,
+        motion_constants,
+        verify_containment,
+    )
+    from .errors import LarcInputError
+    from .geometry import segment_box_distance, segment_box_distances
+    from .hermite import HermiteSpline, speed_max
+    from .interval import IntervalEval, evaluate_interval, interval_clearance
+    from .results import DatasetResult, Leaf, LeafTable, TrajectoryResult
+    from .robot import JointType, Robot, forward_kinematics
+    from .scene import Scene, read_moveit_scene, read_scene
+    from .stream import certify_stream
+    from .trajectory import Trajectory, finite_difference_velocities
+    from .trajectory_files import read_trajectory, write_trajectory
+    from .urdf import load_robot
+    from .certificate import write_certificate
+    from .verify import Refuted, verify_certificate  # last: it defers JAX, which is loaded by now
+    globals().update({k: v for k, v in locals().items() if k in __all__})
+    _loaded = True
+
+
+def __getattr__(name: str):
+    # PEP 562: ``import larc_jax`` loads no JAX until an attribute is used, so that the
+    # NumPy-only checker (larc_jax.verify, `larc verify`) runs in a process without JAX
+    # (larc_jax.lazy_jax). Any attribute loads the whole public API at once.
+    if not _loaded and not name.startswith("__"):
+        _load()
+        if name in globals():
+            return globals()[name]
+    raise AttributeError(f"module 'larc_jax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
+class _Package(types.ModuleType):
+    """Keeps the API names: importing a submodule of the same name (``larc_jax.certify``) before
+    the API is loaded must not bind the module where :func:`certify` belongs."""
+
+    def __setattr__(self, name, value):
+        if name in __all__ and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -25,7 +25,6 @@ import dataclasses
 import functools
 from typing import Callable, Sequence
 
-import jax
 import numpy as np
 
 from .cascade import Links, combine, hull_pair_clearance, interval_pairs, select_pairs
@@ -34,7 +33,8 @@ from .compilation import cached_kernel_call
 from .enclosure.capsule import CapsuleModel
 from .enclosure.hull import HullModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
-from .interval import RoundingBounds, evaluate_interval, rebase_ends
+from .interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
+from .lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
 from .robot import Robot
 from .scene import Scene, pad_scenes
 
@@ -58,16 +58,6 @@ def size_class(n: int, minimum: int) -> int:
     trajectories, scenes) are rounded up to these so a process compiles a few shapes, not one
     per distinct size (each compiled CPU executable also holds ~100 memory mappings)."""
     return 1 << (max(int(n), int(minimum)) - 1).bit_length()
-
-
-def dyadic_ends(t_start, t_end, depth, index):
-    """Ends of interval ``index`` of the ``2**depth`` equal parts of ``[t_start, t_end]``
-    (NumPy, elementwise). The fractions are exact; the horizon ends are taken verbatim."""
-    n = np.ldexp(1.0, depth)
-    f0, f1 = index / n, (index + 1) / n
-    a = np.where(f0 == 0.0, t_start, t_start + (t_end - t_start) * f0)
-    b = np.where(f1 == 1.0, t_end, t_start + (t_end - t_start) * f1)
-    return a, b
 
 
 _SEEN: set = set()

@@ -47,20 +47,19 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .enclosure.capsule import CapsuleModel
 from .enclosure.hull import HullModel
 from .interval import evaluate_interval, evaluate_interval_np, motion_radii
+from .lazy_jax import jax, jnp, pytree_dataclass
 from .polytope import polytope_box_lower_bound, polytope_box_lower_bound_np
 from .robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
            "hull_pair_clearance_np", "Links", "select_pairs", "combine", "cascade_np"]
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class PairDetails:
     """What step 2 computes on one interval (JAX or NumPy arrays)."""

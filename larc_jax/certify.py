@@ -280,12 +280,13 @@ def certify(
                 frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress, on_compile)
     wall = time.perf_counter() - start
     result = _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
-                             float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds))
+                             float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds),
+                             dtype=np.dtype(dtype).name)
     return dataclasses.replace(result, enclosure=enclosure, held_joints=held_joint_states(robot))
 
 
 def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, bounds,
-                    margin, max_depth, wall, compile_time_s: float = 0.0) -> DatasetResult:
+                    margin, max_depth, wall, compile_time_s: float = 0.0, dtype: str = "float64") -> DatasetResult:
     n = len(trajectories)
     bad = np.bincount(leaves.traj, weights=~leaves.certified, minlength=n) > 0
     nan = np.bincount(leaves.traj, weights=np.isnan(leaves.clearance_m), minlength=n) > 0
@@ -298,5 +299,5 @@ def _dataset_result(method, trajectories, scenes, names, capsules, frontier, lea
         guard_m=np.array([np.max(b.guard_m) for b in bounds], np.float64), leaves=leaves,
         capsule_names=tuple(capsules.names), box_names=names.box_names, margin_m=margin, max_depth=max_depth,
         wall_time_s=wall, time_offset_s=np.array([float(b.offset_s) for b in bounds], np.float64),
-        compile_time_s=compile_time_s, excluded_links=capsules.excluded_links,
+        compile_time_s=compile_time_s, excluded_links=capsules.excluded_links, dtype=dtype,
     )

@@ -29,11 +29,10 @@ from __future__ import annotations
 
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .geometry import segment_box_distance, segment_box_distance_np
+from .lazy_jax import jax, jnp
 
 __all__ = ["segment_box_lower_bound", "min_clearance", "min_clearance_np", "BROAD_PHASE_K"]
 

@@ -32,6 +32,8 @@ from .report import format_clearance, leaves_bytes, result_json, table_lines
 log = logging.getLogger("larc")
 
 EXIT_OK, EXIT_UNCERTIFIED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+EXIT_REFUTED = 1
+"""``larc verify``: the certificate's claim does not hold."""
 
 
 class _LogFormatter(logging.Formatter):
@@ -343,7 +345,8 @@ def _cmd_certify(args) -> int:
         raise LarcInputError("certify needs trajectory files (TRAJ_FILE ...) or --manifest FILE.csv")
     if not args.scene:
         raise LarcInputError("certify needs --scene FILE (or --manifest FILE.csv, whose rows name the scenes)")
-    _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves)))
+    _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves),
+                                  ("--certificate", args.certificate)))
     leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
     timer = _PhaseTimer()
     robot, capsules = load_robot_file(args.robot, hold=_hold(args), active_joints=_joints(args))
@@ -364,6 +367,13 @@ def _cmd_certify(args) -> int:
     if args.leaves:
         n_leaves = sum(len(r.leaves) for r in result)
         _write_output(args.leaves, leaves_bytes(result, leaves_fmt), f"{n_leaves} leaves")
+    if args.certificate:
+        from .certificate import write_certificate
+
+        write_certificate(args.certificate, result, trajectories, scene, robot, capsules, robot_file=args.robot,
+                          trajectory_files=args.trajectories, scene_files=[args.scene], velocities=args.velocities)
+        log.info("wrote %s (certificate of %d trajectories; check it with `larc verify %s`)", args.certificate,
+                 len(result), args.certificate)
     if all(r.certified for r in result):
         return EXIT_OK
     if not args.fail_on_uncertified:
@@ -381,6 +391,8 @@ def _certify_manifest(args) -> int:
                              "give no TRAJ_FILE and no --scene")
     if args.json:
         raise LarcInputError("--json is not available with --manifest (the results go to --out)")
+    if args.certificate:
+        raise LarcInputError("--certificate is not available with --manifest")
     if not args.out:
         raise LarcInputError("--manifest needs --out RESULTS.parquet (a folder of Parquet parts)")
     _check_certify_options(args)
@@ -472,6 +484,26 @@ def _cmd_explain(args) -> int:
             print(f"  axis-to-box distance {ex.distance_m * 1000:.2f} mm vs shell r + margin + motion "
                   f"= {ex.radius[c] * 1000:.2f} + {ex.margin_m * 1000:.2f} + {ex.motion_b[c] * 1000:.2f} mm")
     log.info("wrote %s", out)
+    return EXIT_OK
+
+
+def _cmd_verify(args) -> int:
+    from .verify import Refuted, verify_certificate  # NumPy only: this process never loads JAX
+
+    try:
+        report = verify_certificate(args.certificate, trajectories=args.trajectory, scenes=args.scene,
+                                    robot=args.robot)
+    except Refuted as exc:
+        print(f"larc: REFUTED: {args.certificate}: {exc}", file=sys.stderr)
+        return EXIT_REFUTED
+    if not args.quiet and report.checked == 0:
+        print(f"{args.certificate}: VERIFIED: none of its {report.trajectories} trajectories is claimed certified "
+              "(nothing to re-check)")
+    elif not args.quiet:
+        print(f"{args.certificate}: VERIFIED: {report.checked} of {report.trajectories} trajectories claimed "
+              f"certified, {report.leaves} leaves re-checked with the NumPy float64 reference (smallest clearance "
+              f"above guard {report.min_excess_m * 1000:.3f} mm, stored clearances within "
+              f"{report.max_clearance_diff_m:.2g} m)")
     return EXIT_OK
 
 
@@ -581,6 +613,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "moves, e.g. a fixed base standing on its table; the output names it")
     _gripper_options(c)
     c.add_argument("--json", metavar="OUT.json", help="write per-trajectory results as JSON")
+    c.add_argument("--certificate", metavar="OUT.json",
+                   help="write a certificate file: the leaf cover (exact floats), parameters, rounding bounds "
+                        "and SHA-256 of the robot file, meshes, scene and trajectories; check it with "
+                        "'larc verify OUT.json'")
     c.add_argument("--leaves", metavar="OUT.parquet",
                    help="write the full leaf cover, one row per leaf (id, depth, index, t0, t1, "
                         "clearance_m, certified, capsule, box); .parquet or .csv by suffix")
@@ -598,6 +634,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="exit 1 if some trajectory is not certified (default); with "
                         "--no-fail-on-uncertified exit 0 unless the input is bad")
     c.set_defaults(func=_cmd_certify)
+
+    r = sub.add_parser(
+        "verify", parents=common, help="re-check a certificate file without JAX (NumPy float64 references)",
+        description="Re-check a certificate written by 'larc certify --certificate': the hashes of the robot "
+                    "file, URDF, meshes, scene and trajectories; that the leaves of every trajectory claimed "
+                    "certified tile its horizon; that every such leaf passes the NumPy float64 interval test, "
+                    "recomputed from the files. Exit status: 0 verified, 1 refuted (the first failing leaf is "
+                    "named), 2 bad input, 3 internal error.")
+    r.add_argument("certificate", metavar="CERT.json", help="certificate file")
+    r.add_argument("--trajectory", nargs="+", metavar="FILE",
+                   help="trajectory files instead of the ones the certificate names (one per trajectory, in order)")
+    r.add_argument("--scene", nargs="+", metavar="FILE",
+                   help="scene files instead of the ones the certificate names (one per scene, in order)")
+    r.add_argument("--robot", metavar="ROBOT.yaml", help="robot file instead of the one the certificate names")
+    r.set_defaults(func=_cmd_verify)
 
     e = sub.add_parser(
         "explain", parents=common,

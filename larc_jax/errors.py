@@ -10,3 +10,8 @@ from __future__ import annotations
 
 class LarcInputError(ValueError):
     """Bad input: the message names the file, field and index of the problem."""
+
+
+class GeometryChanged(LarcInputError):
+    """A URDF or collision mesh differs from the one a robot file (or a certificate) was made
+    with: the hash recorded then and the file now disagree."""

@@ -45,9 +45,9 @@ from __future__ import annotations
 
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
+
+from .lazy_jax import jax, jnp, lazy_jit
 
 __all__ = [
     "segment_box_distance",
@@ -161,7 +161,7 @@ def segment_box_distance_np(p0, p1, lo, hi) -> float:
     return math.sqrt(best)
 
 
-@jax.jit
+@lazy_jit
 def segment_box_distances(p0, p1, lo, hi) -> jax.Array:
     """Distances from every segment to every box.
 

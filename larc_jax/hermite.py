@@ -57,11 +57,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Sequence
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .errors import LarcInputError
+from .lazy_jax import jax, jnp, pytree_dataclass
 
 __all__ = [
     "HermiteSpline",
@@ -153,7 +152,7 @@ def _build_speed_table(t_knots, q_knots, qd_knots):
     return jnp.stack(levels, axis=0)
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class HermiteSpline:
     """A piecewise-cubic Hermite joint trajectory with a segment-speed range-maximum table.
@@ -222,7 +221,7 @@ class HermiteSpline:
         return cls(t_knots=t, q_knots=q, qd_knots=qd, speed_table=_build_speed_table(t, q, qd))
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class SplineRow:
     """Spline ``k`` of a batched :class:`HermiteSpline`, read in place.

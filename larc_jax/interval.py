@@ -98,8 +98,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .enclosure.capsule import CapsuleModel, capsule_segments, capsule_segments_np
@@ -107,6 +105,7 @@ from .errors import LarcInputError
 from .clearance import min_clearance
 from .geometry import segment_box_distance, segment_box_distance_np
 from .hermite import HermiteSpline, evaluate, evaluate_np, speed_max, speed_max_np
+from .lazy_jax import jax, jnp, pytree_dataclass
 from .robot import JointType, Robot
 
 __all__ = [
@@ -120,6 +119,7 @@ __all__ = [
     "trajectory_rounding",
     "time_offset",
     "rebase_ends",
+    "dyadic_ends",
     "geometry_dtype",
     "K_TIME", "K_POS", "K_SPEED", "K_FK", "K_DIST_REL", "K_DIST_ABS",
 ]
@@ -139,7 +139,6 @@ K_DIST_ABS = 64
 
 _U64 = float(np.finfo(np.float64).eps) / 2
 _EPS64 = float(np.finfo(np.float64).eps)
-_HIGHEST = jax.lax.Precision.HIGHEST
 
 
 def geometry_dtype(dtype) -> np.dtype:
@@ -184,12 +183,22 @@ def rebase_ends(a, b, offset):
     return np.where(ea < 0, np.nextafter(sa, -np.inf), sa), np.where(eb > 0, np.nextafter(sb, np.inf), sb)
 
 
+def dyadic_ends(t_start, t_end, depth, index):
+    """Ends of interval ``index`` of the ``2**depth`` equal parts of ``[t_start, t_end]``
+    (NumPy, elementwise). The fractions are exact; the horizon ends are taken verbatim."""
+    n = np.ldexp(1.0, depth)
+    f0, f1 = index / n, (index + 1) / n
+    a = np.where(f0 == 0.0, t_start, t_start + (t_end - t_start) * f0)
+    b = np.where(f1 == 1.0, t_end, t_start + (t_end - t_start) * f1)
+    return a, b
+
+
 # ----------------------------------------------------------------------------------------------
 # Per-trajectory bounds (the guard and the slacks of the budget)
 # ----------------------------------------------------------------------------------------------
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class RoundingBounds:
     """What the error budget gives one trajectory (arrays; a batch adds a leading axis)."""
@@ -283,7 +292,7 @@ def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.flo
 # ----------------------------------------------------------------------------------------------
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class IntervalEval:
     """Everything the interval test computed on one interval (JAX or NumPy arrays)."""

@@ -59,9 +59,9 @@ from __future__ import annotations
 import itertools
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
+
+from .lazy_jax import jax, jnp
 
 __all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np"]
 

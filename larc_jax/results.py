@@ -163,6 +163,8 @@ class DatasetResult:
     """What the certificate assumes about every held joint (the gripper): ``(joint, state, lo,
     hi)`` with state ``stated`` (held at lo == hi, as the user said), ``stroke`` (anywhere in
     [lo, hi]: enclosed over the whole stroke) or ``held`` (a held revolute joint, at lo == hi)."""
+    dtype: str = "float64"
+    """Geometry dtype of the run (``certify(dtype=...)``; the guard accounts for it)."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 

@@ -23,11 +23,10 @@ from __future__ import annotations
 import dataclasses
 import enum
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .errors import LarcInputError
+from .lazy_jax import jax, jnp, pytree_dataclass
 
 __all__ = [
     "JointType",
@@ -49,7 +48,7 @@ class JointType(enum.IntEnum):
     PRISMATIC = 2
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class Robot:
     """A kinematic tree; its active joints are usually one serial chain from the root (an arm),

@@ -22,7 +22,7 @@ def run(tmp_path, *args, **env):
 
 
 def test_help_has_no_raw_rest_markup():
-    for sub in ([], ["certify"], ["explain"], ["fit-capsules"]):
+    for sub in ([], ["certify"], ["explain"], ["fit-capsules"], ["verify"]):
         p = subprocess.run([sys.executable, "-m", "larc_jax.cli", *sub, "--help"], capture_output=True, text=True)
         assert p.returncode == 0 and "`" not in p.stdout, p.stdout
 

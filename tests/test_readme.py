@@ -44,7 +44,7 @@ def test_readme_has_command_line_examples():
     assert len(SH_BLOCKS) >= 4
     text = "\n".join(b for _, b in SH_BLOCKS)
     for needle in ("larc certify", "--leaves", "--json", "--quiet", "larc explain", "larc fit-capsules",
-                   "larc verify-capsules"):
+                   "larc verify-capsules", "--certificate", "larc verify cert.json"):
         assert needle in text, needle
 
 

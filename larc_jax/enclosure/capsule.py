@@ -13,17 +13,16 @@ from __future__ import annotations
 import dataclasses
 from typing import Iterable
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..errors import LarcInputError
+from ..lazy_jax import jax, jnp, pytree_dataclass
 from ..robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["CapsuleModel", "capsule_segments", "capsule_segments_np"]
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class CapsuleModel:
     """Capsules attached to links, with their motion constants.

@@ -46,10 +46,10 @@ import os
 from pathlib import Path
 from typing import Sequence
 
-import jax
 import numpy as np
 
 from ..errors import LarcInputError
+from ..lazy_jax import jax, pytree_dataclass
 from ..robot import Robot
 from .meshes import link_elements, robot_urdf_model
 from .motion import motion_constants_points
@@ -65,7 +65,7 @@ _MIN_GAIN = 0.10
 """A link is split in two parts when that shrinks its summed hull volume by at least this much."""
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class HullModel:
     """Hull parts of the links (module docstring), with their motion constants."""

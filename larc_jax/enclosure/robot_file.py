@@ -34,7 +34,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import yaml
 
-from ..errors import LarcInputError
+from ..errors import GeometryChanged, LarcInputError
 from ..io import atomic_write_text, parse_number, parse_vector, parse_yaml, read_input_text, short_repr
 from ..robot import JointType, Robot
 from .capsule import CapsuleModel
@@ -161,7 +161,7 @@ def _check_geometry(doc: Mapping, robot: Robot, source: str) -> None:
             if w == h:
                 continue
             if isinstance(w, dict) and "sha256" in w and "mesh" in h and w.get("sha256") != h["sha256"]:
-                raise LarcInputError(
+                raise GeometryChanged(
                     f"{source}: link '{link}' collision mesh {h['mesh']} has changed since the capsules were "
                     f"fitted (sha256 {h['sha256']}, fitted to {short_repr(w.get('sha256'))}); {_refit(robot, source)}")
             raise LarcInputError(
@@ -193,7 +193,7 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
     if not isinstance(doc, dict):
         raise LarcInputError(f"{source}: expected a mapping with 'capsules'")
     if _field(doc, "urdf_sha256", source) != robot.urdf_sha256:
-        raise LarcInputError(
+        raise GeometryChanged(
             f"{source}: fitted to a URDF with sha256 {short_repr(doc['urdf_sha256'])}, but {robot.urdf_path} "
             f"has sha256 {robot.urdf_sha256}; {_refit(robot, source)}"
         )

@@ -1,0 +1,188 @@
+"""Certificate files: everything needed to re-check a certification result without JAX.
+
+``larc certify --certificate OUT.json`` (or :func:`write_certificate`) writes one JSON document;
+``larc verify`` (:mod:`larc_jax.verify`) re-checks it with the NumPy float64 references.
+
+What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
+
+* ``parameters``: method, margin rho, maximum depth, geometry dtype, links left out.
+* ``robot``: the robot file (path as given, ``null`` for PIPER's shipped capsule file) and the
+  SHA-256 of its bytes, the URDF path and SHA-256, the collision geometry the capsules were
+  proven on (every mesh's SHA-256, as :func:`~larc_jax.enclosure.meshes.collision_geometry`
+  computes it from the files now), the active joints, the values of the held joints, the
+  capsule names.
+* ``scenes``: per scene its file and the SHA-256 of its bytes (``null`` when certified through
+  the Python API from a :class:`~larc_jax.scene.Scene`), and always ``arrays_sha256``, the
+  SHA-256 of the canonical box arrays (:func:`scene_sha256`), and its box names.
+* ``trajectories``: per trajectory its id, file, file SHA-256 (``null`` through the API),
+  ``arrays_sha256`` of the canonical waypoint arrays (:func:`trajectory_sha256`), the velocity
+  mode it was read with, its scene, the claim ``certified``, the horizon, the rounding-bound
+  inputs of :func:`~larc_jax.interval.trajectory_rounding` (offset, tau, speed slack, guard per
+  capsule) and its leaf cover as columns (depth, index, t0, t1, clearance, guard, capsule and
+  box index; -1: no pair).
+
+Every float is written with :meth:`float.hex` (exact: ``float.fromhex`` gives the same double
+back, ``inf`` and ``nan`` included), so interval ends and clearances are the computed values
+bit for bit. The document is written atomically (temporary file, then ``os.replace``).
+
+A certificate claims: for each trajectory marked ``certified``, at every real time of its
+horizon, every capsule of the robot (placed by the Hermite curve through the recorded
+waypoints) is more than rho from every box of its scene, hence every collision element the
+capsules contain; it assumes the hashed files, the held joint values, and that links named in
+``excluded_links`` are not checked at all.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .enclosure.capsule import CapsuleModel
+from .enclosure.meshes import collision_geometry
+from .errors import LarcInputError
+from .interval import trajectory_rounding
+from .io import atomic_write_text
+from .results import DatasetResult
+from .robot import JointType, Robot
+from .scene import Scene
+from .urdf import file_sha256
+
+__all__ = ["CERTIFICATE_FORMAT", "CERTIFICATE_VERSION", "certificate", "write_certificate", "hexf", "unhexf",
+           "file_sha256", "trajectory_sha256", "scene_sha256", "robot_file_path"]
+
+CERTIFICATE_FORMAT = "larc-certificate"
+CERTIFICATE_VERSION = 1
+
+
+def hexf(x) -> str:
+    """A float as :meth:`float.hex` (exact)."""
+    return float(x).hex()
+
+
+def unhexf(s: str) -> float:
+    """Inverse of :func:`hexf` (LarcInputError-free: the caller names the field)."""
+    return float.fromhex(s)
+
+
+def _arrays_sha256(header: dict, *arrays) -> str:
+    h = hashlib.sha256(json.dumps(header, sort_keys=True).encode())
+    for a in arrays:
+        h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
+def trajectory_sha256(traj) -> str:
+    """SHA-256 of a trajectory's canonical bytes: its joint names and shape (JSON), then ``t``,
+    ``q`` and ``qd`` as little-endian float64."""
+    q = np.asarray(traj.q)
+    return _arrays_sha256({"joint_names": list(traj.joint_names), "shape": list(q.shape)}, traj.t, traj.q, traj.qd)
+
+
+def scene_sha256(scene: Scene) -> str:
+    """SHA-256 of a scene's canonical bytes: its box names and count (JSON), then the box
+    corners ``lo`` and ``hi`` as little-endian float64."""
+    return _arrays_sha256({"boxes": list(scene.box_names), "n": int(scene.n_boxes)}, scene.lo, scene.hi)
+
+
+def robot_file_path(robot_file) -> Path:
+    """The robot file a run used: ``robot_file``, or PIPER's shipped capsule file for ``None``."""
+    from .enclosure.robot_file import default_capsule_path
+
+    return Path(robot_file) if robot_file is not None else Path(default_capsule_path())
+
+
+def _held_joints(robot: Robot) -> dict[str, str]:
+    return {robot.joint_names[i]: hexf(robot.q_held[i]) for i in range(robot.n_links)
+            if robot.joint_type[i] != JointType.FIXED and robot.q_index[i] < 0}
+
+
+def _robot_section(robot: Robot, capsules: CapsuleModel, robot_file) -> dict:
+    path = robot_file_path(robot_file)
+    return {
+        "file": None if robot_file is None else str(robot_file), "sha256": file_sha256(path),
+        "urdf": robot.urdf_path, "urdf_sha256": robot.urdf_sha256, "geometry": collision_geometry(robot),
+        "active_joints": list(robot.active_joint_names), "held_joints": _held_joints(robot),
+        "capsules": list(capsules.names),
+    }
+
+
+def _leaf_columns(result: DatasetResult, i: int, box_offset: int) -> dict:
+    lv, sl = result.leaves, result.leaf_slice(i)
+    box = lv.box[sl].astype(np.int64)
+    return {
+        "depth": [int(x) for x in lv.depth[sl]], "index": [int(x) for x in lv.index[sl]],
+        "t0": [hexf(x) for x in lv.t0[sl]], "t1": [hexf(x) for x in lv.t1[sl]],
+        "clearance_m": [hexf(x) for x in lv.clearance_m[sl]], "guard_m": [hexf(x) for x in lv.guard_m[sl]],
+        "certified": [bool(x) for x in lv.certified[sl]], "capsule": [int(x) for x in lv.capsule[sl]],
+        "box": [int(b - box_offset) if b >= 0 else -1 for b in box],
+    }
+
+
+def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsules: CapsuleModel, *,
+                robot_file=None, trajectory_files: Sequence | None = None, scene_files: Sequence | None = None,
+                velocities: str | None = None) -> dict:
+    """The certificate document of ``result`` (a dict; :func:`write_certificate` writes it).
+
+    ``trajectories``, ``scenes``, ``robot`` and ``capsules`` are what :func:`~larc_jax.certify`
+    was given (one scene or one per trajectory). ``robot_file``: the robot file they came from
+    (``None``: PIPER's shipped one). ``trajectory_files`` / ``scene_files`` (optional, one per
+    trajectory / scene): the files read, whose bytes are then hashed too; ``velocities``: the
+    mode they were read with (:func:`~larc_jax.read_trajectory`).
+    """
+    trajectories = [trajectories] if not isinstance(trajectories, (list, tuple)) else list(trajectories)
+    per_traj = [scenes] * len(trajectories) if isinstance(scenes, Scene) else list(scenes)
+    if len(trajectories) != len(result.ids) or len(per_traj) != len(trajectories):
+        raise LarcInputError(f"certificate: the result has {len(result.ids)} trajectories, but "
+                             f"{len(trajectories)} trajectories and {len(per_traj)} scenes were given")
+    if tuple(t.id for t in trajectories) != tuple(result.ids):
+        raise LarcInputError("certificate: the trajectories are not the ones the result was computed for (ids differ)")
+    # Scenes in order of first appearance: the result's box codes are offset in the same order.
+    unique = list(dict.fromkeys(id(s) for s in per_traj))
+    first = {u: next(s for s in per_traj if id(s) == u) for u in unique}
+    offsets = np.cumsum([0] + [first[u].n_boxes for u in unique])
+    files = list(scene_files) if scene_files is not None else [None] * len(unique)
+    if len(files) != len(unique):
+        raise LarcInputError(f"certificate: {len(unique)} scenes but {len(files)} scene files")
+    scene_docs = [{"file": None if f is None else str(f), "sha256": None if f is None else file_sha256(f),
+                   "arrays_sha256": scene_sha256(first[u]), "name": first[u].name,
+                   "boxes": list(first[u].box_names)} for u, f in zip(unique, files)]
+    tfiles = list(trajectory_files) if trajectory_files is not None else [None] * len(trajectories)
+    if len(tfiles) != len(trajectories):
+        raise LarcInputError(f"certificate: {len(trajectories)} trajectories but {len(tfiles)} trajectory files")
+    traj_docs = []
+    for i, (traj, scene, f) in enumerate(zip(trajectories, per_traj, tfiles)):
+        s = unique.index(id(scene))
+        bnd = trajectory_rounding(traj, robot, capsules, result.dtype)
+        traj_docs.append({
+            "id": traj.id, "file": None if f is None else str(f), "sha256": None if f is None else file_sha256(f),
+            "arrays_sha256": trajectory_sha256(traj), "velocities": velocities, "scene": s,
+            "certified": bool(result.certified[i]),
+            "t_start": hexf(traj.t[0]), "t_end": hexf(traj.t[-1]),
+            "rounding": {"offset_s": hexf(bnd.offset_s), "tau_s": hexf(bnd.tau_s),
+                         "omega_slack": [hexf(x) for x in np.asarray(bnd.omega_slack)],
+                         "guard_m": [hexf(x) for x in np.asarray(bnd.guard_m)]},
+            "leaves": _leaf_columns(result, i, int(offsets[s])),
+        })
+    return {
+        "format": CERTIFICATE_FORMAT, "version": CERTIFICATE_VERSION, "float_encoding": "float.hex",
+        "parameters": {"method": result.method, "margin_m": hexf(result.margin_m), "max_depth": int(result.max_depth),
+                       "dtype": result.dtype, "excluded_links": list(result.excluded_links)},
+        "robot": _robot_section(robot, capsules, robot_file),
+        "scenes": scene_docs,
+        "trajectories": traj_docs,
+    }
+
+
+def write_certificate(path, result: DatasetResult, trajectories, scenes, robot: Robot, capsules: CapsuleModel,
+                      **kwargs) -> Path:
+    """Write :func:`certificate` to ``path`` atomically (JSON); returns the path."""
+    doc = certificate(result, trajectories, scenes, robot, capsules, **kwargs)
+    try:
+        atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+    except OSError as exc:
+        raise LarcInputError(f"{path}: cannot write the certificate ({exc.strerror or exc})") from None
+    return Path(path)

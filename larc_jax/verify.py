@@ -1,0 +1,281 @@
+"""The independent checker of certificate files (``larc verify``), in NumPy float64, without JAX.
+
+:func:`verify_certificate` re-reads the robot file, scenes and trajectories a certificate
+(:mod:`larc_jax.certificate`) names (or the files given instead), and re-checks the claim with
+the NumPy references only (:func:`~larc_jax.interval.evaluate_interval_np` and what it calls):
+
+1. Hashes: the robot file's bytes, the URDF, every collision mesh (the robot loader also refuses
+   a mesh that differs from the one the capsules were fitted to), the scene and trajectory files
+   (when the certificate names files) and always their canonical arrays.
+2. Tiling: the leaves of every trajectory claimed certified are in time order, each the dyadic
+   piece ``(depth, index)`` of the horizon (:func:`~larc_jax.interval.dyadic_ends`, exact), the
+   first starts at ``t_0``, each ends where the next starts, the last ends at ``t_K``.
+3. The test: for every such leaf, ``g`` and the guard are recomputed from the files with the
+   float64 reference and its own rounding bounds (stored clearances are not trusted): the leaf
+   must pass, ``g > guard``. The stored clearance must agree with the recomputed one within
+   ``CLEARANCE_TOL_M + 4 (stored guard + recomputed guard)`` (the JAX kernel and the reference
+   round differently; both are within their guards of the exact value), and the stored
+   rounding inputs with the recomputed ones to a relative ``1e-9``.
+
+Trajectories the certificate does not claim certified are not checked. The first failure
+raises :class:`Refuted` naming the trajectory, the leaf and why (``larc verify`` exit 1); a
+missing or malformed file or an unknown format version is :class:`LarcInputError` (exit 2).
+
+This module defers JAX (:func:`larc_jax.lazy_jax.defer_jax`) before importing the library, so a
+process that imports it (``larc verify``) never loads JAX; ``tests/test_certificate.py`` checks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+from .lazy_jax import defer_jax
+
+defer_jax()
+
+import numpy as np  # noqa: E402
+
+from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_path, scene_sha256,  # noqa: E402
+                          trajectory_sha256, unhexf)
+from .defaults import check_depth, check_margin  # noqa: E402
+from .enclosure.meshes import collision_geometry  # noqa: E402
+from .enclosure.robot_file import load_robot_file  # noqa: E402
+from .errors import GeometryChanged, LarcInputError  # noqa: E402
+from .interval import dyadic_ends, evaluate_interval_np, trajectory_rounding  # noqa: E402
+from .io import read_input_text  # noqa: E402
+from .scene import read_scene  # noqa: E402
+from .trajectory_files import read_trajectory  # noqa: E402
+from .urdf import file_sha256  # noqa: E402
+
+__all__ = ["Refuted", "VerifyReport", "verify_certificate", "CLEARANCE_TOL_M"]
+
+CLEARANCE_TOL_M = 1e-9
+"""Absolute part of the agreement asked of a stored clearance, m (module docstring, step 3)."""
+_ROUNDING_RTOL = 1e-9
+
+
+class Refuted(Exception):
+    """The certificate's claim does not hold (the message names the trajectory, leaf and why)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class VerifyReport:
+    trajectories: int
+    """Trajectories in the certificate."""
+    checked: int
+    """Of them, claimed certified and re-checked."""
+    leaves: int
+    """Leaves re-checked."""
+    max_clearance_diff_m: float
+    """Largest |stored clearance - recomputed clearance| over the re-checked leaves, m."""
+    min_excess_m: float
+    """Smallest recomputed ``g - guard`` over the re-checked leaves, m (> 0)."""
+
+
+def _get(doc, key, where: str, kind=None):
+    if not isinstance(doc, dict) or key not in doc:
+        raise LarcInputError(f"{where}: missing field '{key}'")
+    value = doc[key]
+    if kind is not None and not isinstance(value, kind):
+        raise LarcInputError(f"{where}.{key}: expected {getattr(kind, '__name__', kind)}, got {type(value).__name__}")
+    return value
+
+
+def _float(s, where: str) -> float:
+    try:
+        return unhexf(s)
+    except (TypeError, ValueError):
+        raise LarcInputError(f"{where}: not a float.hex() number: {str(s)[:40]!r}") from None
+
+
+def _floats(doc, key, where: str) -> np.ndarray:
+    return np.array([_float(s, f"{where}.{key}[{i}]") for i, s in enumerate(_get(doc, key, where, list))],
+                    np.float64)
+
+
+def _ints(doc, key, where: str) -> np.ndarray:
+    values = _get(doc, key, where, list)
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
+        raise LarcInputError(f"{where}.{key}: expected a list of integers")
+    return np.array(values, np.int64)
+
+
+def _override(given, n: int, what: str) -> list:
+    if not given:
+        return [None] * n
+    if len(given) != n:
+        raise LarcInputError(f"{what}: {len(given)} files given, but the certificate has {n}")
+    return list(given)
+
+
+def _sha256(path, what: str) -> str:
+    try:
+        return file_sha256(path)
+    except OSError as exc:
+        raise LarcInputError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+
+
+def _check_hash(have: str, want, what: str) -> None:
+    if want is not None and have != want:
+        raise Refuted(f"{what} has sha256 {have}, the certificate records {want}")
+
+
+def _load_robot(doc: dict, robot_path, excluded: list[str]):
+    where = "robot"
+    recorded = _get(doc, "file", where)
+    path = robot_path if robot_path is not None else recorded
+    file = robot_file_path(path)
+    if not file.is_file():
+        raise LarcInputError(f"{file}: robot file not found")
+    _check_hash(_sha256(file, "robot file"), _get(doc, "sha256", where, str), f"robot file {file}")
+    try:
+        robot, capsules = load_robot_file(path)
+    except GeometryChanged as exc:
+        raise Refuted(f"robot: {exc}") from None
+    _check_hash(robot.urdf_sha256, _get(doc, "urdf_sha256", where, str), f"URDF {robot.urdf_path}")
+    if collision_geometry(robot) != _get(doc, "geometry", where, dict):
+        raise Refuted(f"robot: the collision geometry of {robot.urdf_path} (mesh sha256, origins, sizes) differs "
+                      "from the one the certificate records")
+    if list(robot.active_joint_names) != _get(doc, "active_joints", where, list):
+        raise Refuted(f"robot: active joints {list(robot.active_joint_names)} differ from the certificate's")
+    more = [x for x in excluded if x not in capsules.excluded_links]
+    if more:
+        capsules = capsules.without_links(robot, more, what="certificate excluded_links:")
+    if list(capsules.names) != _get(doc, "capsules", where, list):
+        raise Refuted("robot: the capsule names differ from the certificate's")
+    return robot, capsules
+
+
+def _load_scenes(docs: list, files: list, robot) -> list:
+    scenes = []
+    for k, (doc, given) in enumerate(zip(docs, files)):
+        where = f"scenes[{k}]"
+        path = given if given is not None else _get(doc, "file", where)
+        if path is None:
+            raise LarcInputError(f"{where}: certified from arrays through the Python API; give its file (larc verify --scene, verify_certificate(scenes=...))")
+        if doc.get("sha256") is not None:
+            _check_hash(_sha256(path, "scene file"), doc["sha256"], f"scene file {path}")
+        scene = read_scene(path, frame=robot.link_names[0])
+        _check_hash(scene_sha256(scene), _get(doc, "arrays_sha256", where, str), f"scene {path} (its boxes)")
+        scenes.append(scene)
+    return scenes
+
+
+def _check_tiling(tid: str, t_start: float, t_end: float, depth, index, t0, t1) -> None:
+    for k in range(len(t0)):
+        a, b = (float(x) for x in dyadic_ends(t_start, t_end, int(depth[k]), int(index[k])))
+        if not (0 <= index[k] < 2 ** int(depth[k])) or a != t0[k] or b != t1[k]:
+            raise Refuted(f"trajectory '{tid}' leaf {k}: [{t0[k]!r}, {t1[k]!r}] is not the dyadic piece "
+                          f"(depth {depth[k]}, index {index[k]}) of its horizon")
+        start = t_start if k == 0 else float(t1[k - 1])
+        if t0[k] != start:
+            raise Refuted(f"trajectory '{tid}' leaf {k}: starts at {t0[k]!r}, but the "
+                          f"{'horizon starts' if k == 0 else 'previous leaf ends'} at {start!r} (the leaves do not "
+                          "tile the horizon)")
+    if not len(t1) or t1[-1] != t_end:
+        raise Refuted(f"trajectory '{tid}': the leaves end at {t1[-1] if len(t1) else None!r}, the horizon at "
+                      f"{t_end!r} (the leaves do not tile the horizon)")
+
+
+def _check_rounding(tid: str, doc: dict, bnd, where: str) -> None:
+    for key in ("offset_s", "tau_s", "omega_slack", "guard_m"):
+        stored = _floats(doc, key, where) if isinstance(doc.get(key), list) else np.array([_float(_get(doc, key, where),
+                                                                                                 f"{where}.{key}")])
+        have = np.atleast_1d(np.asarray(getattr(bnd, key), np.float64))
+        if stored.shape != have.shape or not np.all(np.abs(stored - have) <= _ROUNDING_RTOL * np.abs(have)):
+            raise Refuted(f"trajectory '{tid}': rounding input {key} {stored.tolist()} differs from the recomputed "
+                          f"{have.tolist()}")
+
+
+def _check_trajectory(doc: dict, k: int, traj, scene, robot, capsules, margin: float, dtype: str, max_depth: int):
+    """Re-check one trajectory claimed certified; returns (leaves, max clearance diff, min excess)."""
+    where = f"trajectories[{k}]"
+    tid = str(_get(doc, "id", where))
+    t_start, t_end = float(traj.t[0]), float(traj.t[-1])
+    if _float(_get(doc, "t_start", where), f"{where}.t_start") != t_start or \
+            _float(_get(doc, "t_end", where), f"{where}.t_end") != t_end:
+        raise Refuted(f"trajectory '{tid}': the recorded horizon differs from the trajectory's [{t_start!r}, {t_end!r}]")
+    _check_rounding(tid, _get(doc, "rounding", where, dict), trajectory_rounding(traj, robot, capsules, dtype),
+                    f"{where}.rounding")
+    lv = _get(doc, "leaves", where, dict)
+    lw = f"{where}.leaves"
+    depth, index, capsule = _ints(lv, "depth", lw), _ints(lv, "index", lw), _ints(lv, "capsule", lw)
+    t0, t1 = _floats(lv, "t0", lw).tolist(), _floats(lv, "t1", lw).tolist()
+    g_stored, guard_stored = _floats(lv, "clearance_m", lw).tolist(), _floats(lv, "guard_m", lw).tolist()
+    flags = _get(lv, "certified", lw, list)
+    if len({len(x) for x in (depth, index, capsule, t0, t1, g_stored, guard_stored, flags)}) != 1:
+        raise LarcInputError(f"{lw}: the leaf columns have different lengths")
+    if np.any(depth < 0) or np.any(depth > max_depth):
+        raise Refuted(f"trajectory '{tid}': a leaf depth is outside 0..{max_depth}")
+    _check_tiling(tid, t_start, t_end, depth, index, t0, t1)
+    bounds = trajectory_rounding(traj, robot, capsules)  # the float64 reference's own guard
+    diff, excess = 0.0, math.inf
+    for j in range(len(t0)):
+        leaf = f"trajectory '{tid}' leaf {j} (t=[{t0[j]!r}, {t1[j]!r}], depth {depth[j]})"
+        if flags[j] is not True:
+            raise Refuted(f"{leaf}: marked not certified in a trajectory claimed certified")
+        ev = evaluate_interval_np(robot, capsules, traj, scene, t0[j], t1[j], margin, bounds)
+        g, guard = float(ev.g), float(ev.guard)
+        if not g > guard:  # NaN fails
+            raise Refuted(f"{leaf}: fails the reference test: clearance {g!r} m is not above the guard {guard!r} m "
+                          f"(capsule {capsules.names[ev.capsule]}, box {ev.box})")
+        tol = CLEARANCE_TOL_M + 4 * (abs(guard_stored[j]) + abs(guard))
+        d = abs(g_stored[j] - g) if math.isfinite(g) else (0.0 if g == g_stored[j] else math.inf)
+        if not d <= tol:
+            raise Refuted(f"{leaf}: stored clearance {g_stored[j]!r} m differs from the recomputed {g!r} m by "
+                          f"{d:.3g} m (> tolerance {tol:.3g} m)")
+        diff, excess = max(diff, d), min(excess, g - guard)
+    return len(t0), diff, excess
+
+
+def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> VerifyReport:
+    """Re-check the certificate at ``path`` (module docstring). ``trajectories`` / ``scenes``:
+    files to use instead of the ones it names (one per trajectory / scene, in its order);
+    ``robot``: the robot file instead of its. Raises :class:`Refuted` or :class:`LarcInputError`."""
+    source = str(path)
+    try:
+        doc = json.loads(read_input_text(Path(path), "certificate"))
+    except json.JSONDecodeError as exc:
+        raise LarcInputError(f"{source}: not JSON ({exc.msg}, line {exc.lineno})") from None
+    if not isinstance(doc, dict) or doc.get("format") != CERTIFICATE_FORMAT:
+        raise LarcInputError(f"{source}: not a larc certificate (format {CERTIFICATE_FORMAT!r} expected)")
+    if doc.get("version") != CERTIFICATE_VERSION:
+        raise LarcInputError(f"{source}: unknown certificate version {doc.get('version')!r} (this checker reads "
+                             f"version {CERTIFICATE_VERSION})")
+    params = _get(doc, "parameters", source, dict)
+    margin = check_margin(_float(_get(params, "margin_m", "parameters"), "parameters.margin_m"), "parameters.margin_m")
+    max_depth = check_depth(_get(params, "max_depth", "parameters", int), "parameters.max_depth")
+    dtype = _get(params, "dtype", "parameters", str)
+    if dtype not in ("float64", "float32"):
+        raise LarcInputError(f"{source}: parameters.dtype {dtype!r} is not float64 or float32")
+    rob, capsules = _load_robot(_get(doc, "robot", source, dict), robot,
+                                list(_get(params, "excluded_links", "parameters", list)))
+    scene_docs = _get(doc, "scenes", source, list)
+    loaded_scenes = _load_scenes(scene_docs, _override(scenes, len(scene_docs), "--scene"), rob)
+    traj_docs = _get(doc, "trajectories", source, list)
+    files = _override(trajectories, len(traj_docs), "--trajectory")
+    checked = n_leaves = 0
+    diff, excess = 0.0, math.inf
+    for k, (tdoc, given) in enumerate(zip(traj_docs, files)):
+        where = f"trajectories[{k}]"
+        if _get(tdoc, "certified", where, bool) is not True:
+            continue  # no claim, nothing to check
+        tid = str(_get(tdoc, "id", where))
+        tpath = given if given is not None else _get(tdoc, "file", where)
+        if tpath is None:
+            raise LarcInputError(f"{where} ('{tid}'): certified from arrays through the Python API; give its file "
+                                 "(larc verify --trajectory, verify_certificate(trajectories=...))")
+        if tdoc.get("sha256") is not None:
+            _check_hash(_sha256(tpath, "trajectory file"), tdoc["sha256"], f"trajectory file {tpath}")
+        traj = read_trajectory(tpath, rob, velocities=tdoc.get("velocities") or "recorded")
+        _check_hash(trajectory_sha256(traj), _get(tdoc, "arrays_sha256", where, str), f"trajectory '{tid}' ({tpath})")
+        s = _get(tdoc, "scene", where, int)
+        if not 0 <= s < len(loaded_scenes):
+            raise LarcInputError(f"{where}.scene: {s} is not a scene index (0..{len(loaded_scenes) - 1})")
+        nl, d, e = _check_trajectory(tdoc, k, traj, loaded_scenes[s], rob, capsules, margin, dtype, max_depth)
+        checked, n_leaves, diff, excess = checked + 1, n_leaves + nl, max(diff, d), min(excess, e)
+    return VerifyReport(trajectories=len(traj_docs), checked=checked, leaves=n_leaves, max_clearance_diff_m=diff,
+                        min_excess_m=excess)
