@@ -338,7 +338,7 @@ def motion_radii(motion_a, h_cov, speed):
     n = speed.shape[-1]
     if isinstance(speed, np.ndarray):
         return h_cov * (np.asarray(motion_a, np.float64) @ speed) * (1 + (n + 64) * eps)
-    return h_cov * jnp.matmul(motion_a, speed, precision=_HIGHEST) * (1 + (n + 64) * eps)
+    return h_cov * jnp.matmul(motion_a, speed, precision=jax.lax.Precision.HIGHEST) * (1 + (n + 64) * eps)
 
 
 def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSpline,
