@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     import larc_jax as lj
-    from experiments.bench import stageB_dataset, stageB_like
+    from experiments.bench import ENCLOSURE, stageB_dataset, stageB_like
 
     robot = lj.load_robot()
     capsules = lj.load_capsules(lj.default_capsule_path(), robot)
@@ -34,10 +34,10 @@ def main(argv=None) -> int:
     certified = evaluations = 0
     if args.mode == "call":
         trajs, sc = zip(*pairs)
-        res = lj.certify(list(trajs), list(sc), robot, capsules)
+        res = lj.certify(list(trajs), list(sc), robot, capsules, enclosure=ENCLOSURE)
         certified, evaluations = int(res.certified.sum()), int(res.evaluations.sum())
     else:
-        for chunk in lj.certify_stream(pairs, robot, capsules):
+        for chunk in lj.certify_stream(pairs, robot, capsules, enclosure=ENCLOSURE):
             certified += int(chunk.certified.sum())
             evaluations += int(chunk.evaluations.sum())
     dt = time.perf_counter() - start

@@ -308,16 +308,16 @@ _WORKER: dict = {}
 
 
 def _truth_job(job: dict) -> dict:
-    from experiments.collision import SceneBoxes, load_scene_boxes
+    from experiments.collision import SceneBoxes
     from larc_jax.trajectory_files import read_trajectory
 
     if "truth" not in _WORKER:
         _WORKER["truth"] = _Truth()
     truth = _WORKER["truth"]
     t0 = time.perf_counter()
-    names, lo, hi = load_scene_boxes(job["scene_file"])
+    boxes = SceneBoxes.from_file(job["scene_file"])
     traj = read_trajectory(job["path"], truth.robot)
-    row = mesh_truth(truth, traj, SceneBoxes(lo, hi, names))
+    row = mesh_truth(truth, traj, boxes)
     row.update(traj_id=job["traj_id"], padding_mm=job["padding_mm"], scene=job["scene"],
                duration_s=traj.duration, n_waypoints=traj.n_waypoints, key=job["key"],
                truth_time_s=round(time.perf_counter() - t0, 2))

@@ -126,3 +126,27 @@ def test_cold_start_figures_are_the_generated_ones():
         assert row.split(" | ")[1:] == cells[:-1] + [cells[-1] + " |"], row
     assert f"{doc['import_s']:.2f} s" in section
     assert f"load average {doc['machine']['load_average_before'][0]:.2f}" in section
+
+
+def test_tightness_table_is_the_generated_one():
+    """The README's tightness table is results/tightness/table.md and goal.md (experiments.tightness)."""
+    gen = ROOT / "results" / "tightness"
+    begin = "<!-- tightness table: results/tightness/table.md and goal.md, written by experiments.tightness -->"
+    i, j = README.index(begin) + len(begin), README.index("<!-- end of tightness table -->")
+    want = "\n\n".join(_demote((gen / name).read_text()) for name in ("table.md", "goal.md"))
+    assert README[i:j].strip() == want.strip()
+
+
+def _demote(text: str) -> str:
+    """A generated Markdown file as the README quotes it: its '# ' title as bold text."""
+    lines = text.strip().splitlines()
+    if lines and lines[0].startswith("# "):
+        lines[0] = f"**{lines[0][2:]}**"
+    return "\n".join(lines)
+
+
+def test_benchmark_table_is_the_generated_one():
+    """The README's benchmark table is results/bench/bench_cpu.md (experiments.bench --json)."""
+    begin = "<!-- bench table: results/bench/bench_cpu.md, written by experiments.bench -->"
+    i, j = README.index(begin) + len(begin), README.index("<!-- end of bench table -->")
+    assert README[i:j].strip() == (ROOT / "results" / "bench" / "bench_cpu.md").read_text().strip()
