@@ -38,13 +38,19 @@ from .lazy_jax import jax  # importing this module loads JAX and registers the p
 from .robot import Robot
 from .scene import Scene, pad_scenes
 
-__all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS"]
+__all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
 BUCKETS = tuple(2**k for k in range(2, 13))
 """Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11
 compiled shapes); larger frontiers run in 4096-chunks. Small buckets matter when trajectories
 are certified one at a time: a call costs ~0.1 ms plus ~10 us per padded interval on a CPU core,
 so a 3-interval frontier padded to 64 would cost 5x what it needs."""
+
+
+MAX_BATCH_TRAJECTORIES = 8192
+"""Trajectories :func:`~larc_jax.certify.certify` prepares into one :class:`Batch` (larger
+datasets run batch after batch): bounds the padded spline and bound arrays, so memory does not
+grow with the dataset."""
 
 
 CASCADE_BUCKETS = (64, 1024, 4096)

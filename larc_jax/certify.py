@@ -28,7 +28,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .batch import Batch, dyadic_ends, prepare
+from .batch import MAX_BATCH_TRAJECTORIES, Batch, dyadic_ends, prepare
 from .cascade import Links, cascade_np
 from .compilation import CompileClock
 from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS,
@@ -78,6 +78,12 @@ class _Names:
         self.box_names = tuple(names)
         self.offset = np.array([offsets[id(s)] for s in scenes], np.int64)
         self.has_boxes = np.array([s.n_boxes > 0 for s in scenes], bool)
+
+    def part(self, sl: slice) -> "_Names":
+        """The codes of the trajectories ``sl`` (same global box names)."""
+        out = object.__new__(_Names)
+        out.box_names, out.offset, out.has_boxes = self.box_names, self.offset[sl], self.has_boxes[sl]
+        return out
 
 
 def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, stage) -> LeafTable:
@@ -272,12 +278,25 @@ def certify(
             frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, hulls, margin, max_depth,
                                           bounds, progress)
         else:
-            batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices, on_compile, hulls)
-            if method == Method.LARC:
-                frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress, on_compile)
-            else:
-                depth = max_depth if method == Method.FINE else coarse_depth
-                frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress, on_compile)
+            # Trajectories are prepared (padded into device arrays) MAX_BATCH_TRAJECTORIES at a
+            # time, so memory does not grow with the dataset; each interval's result does not
+            # depend on its batch.
+            frontiers, parts = [], []
+            for lo in range(0, len(trajectories), MAX_BATCH_TRAJECTORIES):
+                sl = slice(lo, lo + MAX_BATCH_TRAJECTORIES)
+                part, n_part = names.part(sl), len(trajectories[sl])
+                batch = prepare(trajectories[sl], scenes[sl], robot, capsules, margin, dtype, bounds[sl], devices,
+                                on_compile, hulls)
+                if method == Method.LARC:
+                    f, lv = _larc_batched(batch, n_part, part, max_depth, progress, on_compile)
+                else:
+                    depth = max_depth if method == Method.FINE else coarse_depth
+                    f, lv = _fixed(batch, n_part, part, depth, max_depth, progress, on_compile)
+                del batch
+                frontiers.append(f)
+                parts.append(dataclasses.replace(lv, traj=lv.traj + lo))
+            frontier = np.concatenate(frontiers)
+            leaves = LeafTable.concatenate(parts) if len(parts) > 1 else parts[0]
     wall = time.perf_counter() - start
     result = _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
                              float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds),

@@ -239,3 +239,29 @@ def test_dask_local_cluster_equals_single_process(tmp_path, small_dataset):
     p = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=900,
                        cwd=tmp_path)
     assert p.returncode == 0 and "ok" in p.stdout, p.stdout[-3000:] + p.stderr[-3000:]
+
+
+def test_certify_in_batches_equals_one_batch(monkeypatch):
+    """A dataset larger than MAX_BATCH_TRAJECTORIES runs batch after batch (bounded memory): the
+    same leaves, frontier and per-trajectory results as one batch."""
+    import importlib
+
+    import larc_jax as lj
+
+    from .test_certify import random_scene, random_trajectory
+
+    C = importlib.import_module("larc_jax.certify")  # the module (larc_jax.certify is the function)
+    robot = lj.load_robot()
+    capsules = lj.load_capsules(lj.default_capsule_path(), robot)
+    rng = np.random.default_rng(11)
+    trajs = [random_trajectory(rng, robot, k) for k in range(13)]
+    scenes = [random_scene(rng, k % 4) for k in range(13)]
+    kw = dict(margin=0.01, max_depth=4, enclosure="capsules")
+    one = lj.certify(trajs, scenes, robot, capsules, **kw)
+    monkeypatch.setattr(C, "MAX_BATCH_TRAJECTORIES", 5)
+    many = lj.certify(trajs, scenes, robot, capsules, **kw)
+    np.testing.assert_array_equal(one.frontier, many.frontier)
+    np.testing.assert_array_equal(one.certified, many.certified)
+    a, b = one.leaves_dataframe(), many.leaves_dataframe()
+    assert a.drop(columns=["clearance_m"]).equals(b.drop(columns=["clearance_m"]))
+    np.testing.assert_allclose(a.clearance_m, b.clearance_m, rtol=0, atol=1e-12)
