@@ -17,6 +17,7 @@ every capsule); a leaf passes iff its recorded clearance exceeds its recorded gu
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import time
 from typing import Callable, Sequence
@@ -34,6 +35,7 @@ from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
+from .tracking import check_tracking_tolerance, tracked_capsules
 from .trajectory import Trajectory, validate_trajectory
 
 __all__ = [
@@ -203,6 +205,7 @@ def certify(
     progress: Callable[[int], None] | None = None,
     devices=None,
     on_compile: Callable[[bool], None] | None = None,
+    tracking_tolerance=None,
 ) -> DatasetResult:
     """Certify trajectories against their scenes in one call.
 
@@ -220,6 +223,10 @@ def certify(
         backend; see :mod:`larc_jax.batch`). Results do not depend on it.
       on_compile: called with ``True`` before a kernel shape new to this process is compiled
         (or loaded from the persistent cache, :mod:`larc_jax.compilation`), ``False`` after.
+      tracking_tolerance: joint tracking error delta_j the certificate allows (rad, m for a
+        prismatic joint): one number, one per active joint, or a mapping joint name -> number
+        (others 0). The certificate then holds for every executed trajectory within delta_j of
+        the planned one at every instant (:mod:`larc_jax.tracking`); None: the plan only.
 
     Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory, its
     ``compile_time_s`` the part of ``wall_time_s`` spent compiling. Links that ``capsules``
@@ -232,6 +239,8 @@ def certify(
         raise LarcInputError(f"certify: unknown method {short_repr(method)} ({', '.join(METHODS)})") from None
     trajectories, scenes, margin, max_depth, coarse_depth, dtype = _check_inputs(
         trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress)
+    delta = check_tracking_tolerance(tracking_tolerance, robot)
+    planned_capsules, capsules = capsules, tracked_capsules(capsules, delta)  # radii grown by sum_j a_lj delta_j
     start = time.perf_counter()
     names = _Names(scenes)
     if method == Method.REFERENCE:
@@ -249,8 +258,12 @@ def certify(
                 depth = max_depth if method == Method.FINE else coarse_depth
                 frontier, leaves = _fixed(batch, len(trajectories), names, depth, max_depth, progress, on_compile)
     wall = time.perf_counter() - start
-    return _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
-                           float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds))
+    result = _dataset_result(method.value, trajectories, scenes, names, planned_capsules, frontier, leaves, bounds,
+                             float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds))
+    if delta is None:
+        return result
+    return dataclasses.replace(result, tracking_tolerance=tuple(
+        (name, float(x)) for name, x in zip(robot.active_joint_names, delta)))
 
 
 def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, bounds,

@@ -35,6 +35,9 @@ def table_lines(result: DatasetResult) -> list[str]:
     compiling = f" of which {result.compile_time_s:.2f} s compiling" if result.compile_time_s >= 0.005 else ""
     lines.append(f"{n_ok} of {len(result)} certified ({result.method}, margin {result.margin_m * 1000:g} mm, "
                  f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s{compiling})")
+    if result.tracking_tolerance:
+        lines.append("the certificate allows a tracking error of " + ", ".join(
+            f"{name} {x:g}" for name, x in result.tracking_tolerance) + " (rad; m for prismatic joints)")
     if result.excluded_links:
         lines.append(f"the certificate excludes links: {', '.join(result.excluded_links)} (never checked against "
                      "the boxes)")
@@ -48,6 +51,7 @@ def result_json(result: DatasetResult, scene_path) -> dict:
     return {
         "method": result.method, "margin_m": result.margin_m, "max_depth": result.max_depth,
         "scene": str(scene_path), "excluded_links": list(result.excluded_links),
+        "tracking_tolerance": dict(result.tracking_tolerance) or None,
         "wall_time_s": result.wall_time_s, "compile_time_s": result.compile_time_s,
         "frontier_sizes": list(result.frontier_sizes),
         "trajectories": [

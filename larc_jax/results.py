@@ -106,6 +106,9 @@ class TrajectoryResult:
     """Offset subtracted (exactly) from every time before evaluation (budget T1), s."""
     excluded_links: tuple[str, ...] = ()
     """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
+    tracking_tolerance: tuple[tuple[str, float], ...] = ()
+    """(active joint, delta_j) the certificate allows as tracking error, rad or m
+    (:mod:`larc_jax.tracking`); empty: it covers the planned trajectory only."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -147,6 +150,9 @@ class DatasetResult:
     them from the persistent cache, :mod:`larc_jax.compilation`)."""
     excluded_links: tuple[str, ...] = ()
     """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
+    tracking_tolerance: tuple[tuple[str, float], ...] = ()
+    """(active joint, delta_j) the certificate allows as tracking error, rad or m
+    (:mod:`larc_jax.tracking`); empty: it covers the planned trajectory only."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
@@ -178,7 +184,7 @@ class DatasetResult:
             duration_s=float(self.duration_s[i]), scene=self.scene_names[i], margin_m=self.margin_m,
             max_depth=self.max_depth, guard_m=float(self.guard_m[i]),
             time_offset_s=0.0 if self.time_offset_s is None else float(self.time_offset_s[i]),
-            excluded_links=self.excluded_links,
+            excluded_links=self.excluded_links, tracking_tolerance=self.tracking_tolerance,
         )
 
     @functools.cached_property
