@@ -25,6 +25,7 @@ import dataclasses
 from typing import Callable, Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .compilation import cached_kernel_call
@@ -33,6 +34,7 @@ from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import RoundingBounds, evaluate_interval, rebase_ends
 from .robot import Robot
 from .scene import Scene, pad_scenes
+from .self_collision import SelfPairs, self_clearance
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS"]
 
@@ -104,6 +106,34 @@ def _evaluate_intervals_cached(*args):
     return cached_kernel_call(_evaluate_intervals, args)
 
 
+@jax.jit
+def _evaluate_intervals_self(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin,
+                             self_check):
+    """:func:`_evaluate_intervals` with the self test (:mod:`larc_jax.self_collision`):
+    ``self_check = (first, second, margin_self)``. Returns ``(g, guard, capsule, box, other)``:
+    the box pair or the capsule pair (``other`` its second capsule, -1 for a box pair) with the
+    smallest ``g - guard``, so a leaf passes iff both tests pass."""
+    first, second, margin_self = self_check
+
+    def one(k, s, ai, bi):
+        spline = SplineRow(splines, k)
+        bnd = jax.tree.map(lambda x: x[k], bounds)
+        ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
+        gs, gds, c1, c2 = self_clearance(ev.p_world_a, ev.p_world_b, capsules.radius, ev.motion_b, bnd.guard_m,
+                                         first, second, margin_self)
+        gs = jnp.where(jnp.isfinite(ev.g) | jnp.isinf(ev.g), gs, jnp.nan)  # non-finite geometry: NaN
+        worse = (gs - gds < ev.g - ev.guard) | jnp.isnan(gs)
+        return (jnp.where(worse, gs, ev.g), jnp.where(worse, gds, ev.guard), jnp.where(worse, c1, ev.capsule),
+                jnp.where(worse, 0, ev.box), jnp.where(worse, c2, -1))
+
+    return jax.vmap(one)(traj, scene, a, b)
+
+
+def _evaluate_intervals_self_cached(*args):
+    """:func:`_evaluate_intervals_self` through the compilation cache (as :func:`_evaluate_intervals_cached`)."""
+    return cached_kernel_call(_evaluate_intervals_self, args)
+
+
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
 
 
@@ -149,6 +179,8 @@ class Batch:
     """Geometry dtype (times and the curve are always float64)."""
     devices: tuple = ()
     """Devices the interval axis is sharded over (one device: no sharding)."""
+    self_pairs: SelfPairs | None = None
+    """Capsule pairs of the self test (:mod:`larc_jax.self_collision`); None: boxes only."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -184,15 +216,18 @@ class Batch:
     def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                  on_compile: Callable[[bool], None] | None = None):
         """``(a, b, g, guard, capsule, box)`` for every interval (NumPy arrays; ``a, b`` in the
-        trajectory's own time axis); ``on_chunk(n)`` after each chunk of ``n`` intervals,
-        ``on_compile(True/False)`` around a compiling call."""
+        trajectory's own time axis), and ``other`` (the second capsule of a self-collision pair,
+        -1 for a box pair) when the batch has :attr:`self_pairs`; ``on_chunk(n)`` after each
+        chunk of ``n`` intervals, ``on_compile(True/False)`` around a compiling call."""
         a, b = self.endpoints(traj, depth, index)
         ar, br = self._rebased(traj, a, b)
         F = len(traj)
-        g = np.empty(F)
-        guard = np.empty(F)
-        cap = np.empty(F, np.int64)
-        box = np.empty(F, np.int64)
+        outs = [np.empty(F), np.empty(F), np.empty(F, np.int64), np.empty(F, np.int64)]
+        extra = ()
+        if self.self_pairs is not None:
+            outs.append(np.empty(F, np.int64))
+            sp = self.self_pairs
+            extra = ((sp.first, sp.second, np.asarray(sp.margin_m, np.float64)),)
         for start in range(0, F, BUCKETS[-1]):
             stop = min(F, start + BUCKETS[-1])
             size = next(s for s in BUCKETS if s >= stop - start)
@@ -205,22 +240,25 @@ class Batch:
             bb = np.concatenate([br[sl], np.repeat(br[start], pad)])
             with jax.enable_x64(True):
                 tr_s, sc_s, aa, bb = self._put(tr, self.scene_of[tr], aa, bb)
-                kernel = _evaluate_intervals if len(self.devices) > 1 else _evaluate_intervals_cached
+                if self.self_pairs is None:
+                    kernel = _evaluate_intervals if len(self.devices) > 1 else _evaluate_intervals_cached
+                else:
+                    kernel = _evaluate_intervals_self if len(self.devices) > 1 else _evaluate_intervals_self_cached
                 out = _call(kernel, (
                     self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
                     self.box_mask, self.bounds, tr_s, sc_s, aa, bb, self.margin,
-                ), on_compile)
-                gg, gd, cc, bx = (np.asarray(x) for x in out)
+                ) + extra, on_compile)
             n = stop - start
-            g[sl], guard[sl], cap[sl], box[sl] = gg[:n], gd[:n], cc[:n], bx[:n]
+            for dst, x in zip(outs, out):
+                dst[sl] = np.asarray(x)[:n]
             if on_chunk:
                 on_chunk(n)
-        return a, b, g, guard, cap, box
+        return (a, b, *outs)
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
             margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None,
-            on_compile: Callable[[bool], None] | None = None) -> Batch:
+            on_compile: Callable[[bool], None] | None = None, self_pairs: SelfPairs | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene and one
     :func:`~larc_jax.interval.trajectory_rounding` per trajectory).
 
@@ -251,5 +289,5 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         box_lo=box_lo, box_hi=box_hi, box_mask=mask, scene_of=scene_of,
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
         margin=np.asarray(margin, np.float64), dtype=dtype,
-        devices=tuple(jax.devices() if devices is None else devices),
+        devices=tuple(jax.devices() if devices is None else devices), self_pairs=self_pairs,
     )

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import time
 from typing import Callable, Sequence
 
@@ -35,6 +36,7 @@ from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
+from .self_collision import SelfPairs, self_clearance_np, self_pairs
 from .tracking import check_tracking_tolerance, tracked_capsules
 from .trajectory import Trajectory, validate_trajectory
 
@@ -74,15 +76,17 @@ class _Names:
         self.has_boxes = np.array([s.n_boxes > 0 for s in scenes], bool)
 
 
-def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, passed) -> LeafTable:
+def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, passed, other=None) -> LeafTable:
     traj = np.asarray(traj, np.int64)
-    has = names.has_boxes[traj]
+    other = np.full(len(traj), -1, np.int64) if other is None else np.asarray(other, np.int64)
+    has = names.has_boxes[traj] & (other < 0)
     return LeafTable(
         traj=traj, depth=np.asarray(depth, np.int16), index=np.asarray(index, np.int64),
         t0=np.asarray(a, np.float64), t1=np.asarray(b, np.float64), clearance_m=np.asarray(g, np.float64),
         guard_m=np.asarray(guard, np.float64), certified=np.asarray(passed, bool),
-        capsule=np.where(has, np.asarray(cap, np.int64), -1).astype(np.int32),
+        capsule=np.where(has | (other >= 0), np.asarray(cap, np.int64), -1).astype(np.int32),
         box=np.where(has, names.offset[traj] + np.asarray(box, np.int64), -1).astype(np.int32),
+        other_capsule=other.astype(np.int32),
     )
 
 
@@ -96,11 +100,12 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress,
             break
         depth = np.full(len(traj), d)
         frontier[:, d] = np.bincount(traj, minlength=n_traj)
-        a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress, on_compile)
+        a, b, g, guard, cap, box, *other = batch.evaluate(traj, depth, index, progress, on_compile)
         passed = g > guard  # NaN compares False: never certifies
         final = passed | (d == max_depth)
         parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], g[final],
-                                 guard[final], cap[final], box[final], passed[final]))
+                                 guard[final], cap[final], box[final], passed[final],
+                                 *(o[final] for o in other)))
         open_ = ~final
         traj = np.repeat(traj[open_], 2)
         index = np.stack([2 * index[open_], 2 * index[open_] + 1], axis=1).reshape(-1)
@@ -112,17 +117,18 @@ def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, pro
     traj = np.repeat(np.arange(n_traj, dtype=np.int64), m)
     index = np.tile(np.arange(m, dtype=np.int64), n_traj)
     depth = np.full(len(traj), depth_fixed)
-    a, b, g, guard, cap, box = batch.evaluate(traj, depth, index, progress, on_compile)
+    a, b, g, guard, cap, box, *other = batch.evaluate(traj, depth, index, progress, on_compile)
     passed = g > guard
     frontier = np.zeros((n_traj, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
     return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, g, guard, cap, box,
-                                                        passed)])
+                                                        passed, *other)])
 
 
-def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max_depth, bounds, progress):
+def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max_depth, bounds, progress,
+               pairs: SelfPairs | None = None):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
-    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, passed)
+    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, passed, other)
     for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
         ts, te = float(traj.t[0]), float(traj.t[-1])
 
@@ -132,16 +138,24 @@ def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max
             ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bnd)
             if progress:
                 progress(1)
-            passed = ev.g > ev.guard
+            g, guard, cap, box, other = ev.g, ev.guard, ev.capsule, ev.box, -1
+            if pairs is not None:
+                gs, gds, c1, c2 = self_clearance_np(ev.p_world_a, ev.p_world_b, np.asarray(capsules.radius, np.float64),
+                                                   ev.motion_b, bnd.guard_m, pairs)
+                if math.isnan(g):
+                    gs = math.nan
+                if gs - gds < g - guard or math.isnan(gs):
+                    g, guard, cap, box, other = gs, gds, c1, 0, c2
+            passed = g > guard
             if passed or d == max_depth:
-                rows.append((k, d, i, a, b, ev.g, ev.guard, ev.capsule, ev.box, passed))
+                rows.append((k, d, i, a, b, g, guard, cap, box, passed, other))
                 return bool(passed)
             left = certify_node(d + 1, 2 * i)
             right = certify_node(d + 1, 2 * i + 1)
             return left and right
 
         certify_node(0, 0)
-    cols = list(zip(*rows)) if rows else [[]] * 10
+    cols = list(zip(*rows)) if rows else [[]] * 11
     return frontier, LeafTable.concatenate([_leaf_table(names, *cols)])
 
 
@@ -206,6 +220,9 @@ def certify(
     devices=None,
     on_compile: Callable[[bool], None] | None = None,
     tracking_tolerance=None,
+    self_collision: bool = False,
+    self_margin: float = 0.0,
+    self_skip=(),
 ) -> DatasetResult:
     """Certify trajectories against their scenes in one call.
 
@@ -227,6 +244,11 @@ def certify(
         prismatic joint): one number, one per active joint, or a mapping joint name -> number
         (others 0). The certificate then holds for every executed trajectory within delta_j of
         the planned one at every instant (:mod:`larc_jax.tracking`); None: the plan only.
+      self_collision: also certify that no two links of a checked pair come within
+        ``self_margin`` (m, default 0: touching fails) at any time (:mod:`larc_jax.self_collision`
+        says which pairs are checked); a leaf then passes iff both tests pass, and records the
+        blocking box or capsule pair. ``self_skip``: link pairs ``"LINK:LINK"`` not to check
+        (named in the result).
 
     Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory, its
     ``compile_time_s`` the part of ``wall_time_s`` spent compiling. Links that ``capsules``
@@ -240,6 +262,10 @@ def certify(
     trajectories, scenes, margin, max_depth, coarse_depth, dtype = _check_inputs(
         trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress)
     delta = check_tracking_tolerance(tracking_tolerance, robot)
+    if not isinstance(self_collision, bool):
+        raise LarcInputError(f"certify: self_collision must be True or False, got {short_repr(self_collision)}")
+    pairs = self_pairs(robot, capsules, self_margin, self_skip) if self_collision else None
+    check_pairs = pairs if pairs is not None and pairs.n_pairs else None
     planned_capsules, capsules = capsules, tracked_capsules(capsules, delta)  # radii grown by sum_j a_lj delta_j
     start = time.perf_counter()
     names = _Names(scenes)
@@ -249,9 +275,10 @@ def certify(
     with CompileClock() as clock:
         if method == Method.REFERENCE:
             frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, bounds,
-                                          progress)
+                                          progress, check_pairs)
         else:
-            batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices, on_compile)
+            batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices, on_compile,
+                            self_pairs=check_pairs)
             if method == Method.LARC:
                 frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress, on_compile)
             else:
@@ -260,10 +287,12 @@ def certify(
     wall = time.perf_counter() - start
     result = _dataset_result(method.value, trajectories, scenes, names, planned_capsules, frontier, leaves, bounds,
                              float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds))
-    if delta is None:
-        return result
-    return dataclasses.replace(result, tracking_tolerance=tuple(
-        (name, float(x)) for name, x in zip(robot.active_joint_names, delta)))
+    if delta is not None:
+        result = dataclasses.replace(result, tracking_tolerance=tuple(
+            (name, float(x)) for name, x in zip(robot.active_joint_names, delta)))
+    if pairs is not None:
+        result = dataclasses.replace(result, self_margin_m=pairs.margin_m, self_skipped=pairs.skipped)
+    return result
 
 
 def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, bounds,

@@ -21,11 +21,12 @@ import numpy as np
 
 __all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS"]
 
-LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box")
+LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box",
+                "other_capsule")
 """Columns of :meth:`DatasetResult.leaves_dataframe` (and of ``larc certify --leaves``)."""
 
 RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "guard_m", "duration_s",
-                  "blocked_t0", "blocked_t1", "blocked_capsule", "blocked_box")
+                  "blocked_t0", "blocked_t1", "blocked_capsule", "blocked_box", "blocked_other_capsule")
 """Columns of :meth:`DatasetResult.to_dataframe`."""
 
 
@@ -47,6 +48,9 @@ class Leaf:
     capsule: str
     """The recorded pair: the one minimising clearance - guard over all pairs."""
     box: str
+    other_capsule: str = ""
+    """With the self-collision test: the second capsule when the recorded pair is a capsule pair
+    (then ``box`` is ''); '' for a capsule/box pair."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,7 +58,8 @@ class LeafTable:
     """Leaves as columns (NumPy arrays of one length), sorted by trajectory, then time.
 
     ``capsule`` indexes the result's ``capsule_names`` and ``box`` its ``box_names`` (-1: no
-    pair, i.e. a scene without boxes).
+    pair, i.e. a scene without boxes, or a self-collision pair); ``other_capsule`` the second
+    capsule of a self-collision pair (-1: a capsule/box pair).
     """
 
     traj: np.ndarray
@@ -69,6 +74,7 @@ class LeafTable:
     certified: np.ndarray
     capsule: np.ndarray
     box: np.ndarray
+    other_capsule: np.ndarray
 
     def __len__(self) -> int:
         return len(self.traj)
@@ -109,6 +115,11 @@ class TrajectoryResult:
     tracking_tolerance: tuple[tuple[str, float], ...] = ()
     """(active joint, delta_j) the certificate allows as tracking error, rad or m
     (:mod:`larc_jax.tracking`); empty: it covers the planned trajectory only."""
+    self_margin_m: float | None = None
+    """With the self-collision test (:mod:`larc_jax.self_collision`): its margin rho_self, m;
+    None: the certificate says nothing about self-collision."""
+    self_skipped: tuple[tuple[str, str, str], ...] = ()
+    """With the self-collision test: the link pairs not checked, and why."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -153,6 +164,11 @@ class DatasetResult:
     tracking_tolerance: tuple[tuple[str, float], ...] = ()
     """(active joint, delta_j) the certificate allows as tracking error, rad or m
     (:mod:`larc_jax.tracking`); empty: it covers the planned trajectory only."""
+    self_margin_m: float | None = None
+    """With the self-collision test (:mod:`larc_jax.self_collision`): its margin rho_self, m;
+    None: the certificate says nothing about self-collision."""
+    self_skipped: tuple[tuple[str, str, str], ...] = ()
+    """With the self-collision test: the link pairs not checked, and why."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
@@ -167,11 +183,12 @@ class DatasetResult:
 
     def _leaf(self, row: int) -> Leaf:
         lv = self.leaves
-        c, b = int(lv.capsule[row]), int(lv.box[row])
+        c, b, o = int(lv.capsule[row]), int(lv.box[row]), int(lv.other_capsule[row])
         return Leaf(depth=int(lv.depth[row]), index=int(lv.index[row]), t0=float(lv.t0[row]),
                     t1=float(lv.t1[row]), clearance_m=float(lv.clearance_m[row]),
                     guard_m=float(lv.guard_m[row]), certified=bool(lv.certified[row]),
-                    capsule=self.capsule_names[c] if c >= 0 else "", box=self.box_names[b] if b >= 0 else "")
+                    capsule=self.capsule_names[c] if c >= 0 else "", box=self.box_names[b] if b >= 0 else "",
+                    other_capsule=self.capsule_names[o] if o >= 0 else "")
 
     def trajectory(self, i: int) -> TrajectoryResult:
         """The :class:`TrajectoryResult` of trajectory ``i`` (built on demand)."""
@@ -185,6 +202,7 @@ class DatasetResult:
             max_depth=self.max_depth, guard_m=float(self.guard_m[i]),
             time_offset_s=0.0 if self.time_offset_s is None else float(self.time_offset_s[i]),
             excluded_links=self.excluded_links, tracking_tolerance=self.tracking_tolerance,
+            self_margin_m=self.self_margin_m, self_skipped=self.self_skipped,
         )
 
     @functools.cached_property
@@ -235,6 +253,7 @@ class DatasetResult:
             "blocked_t0": np.where(has, take(lv.t0), np.nan), "blocked_t1": np.where(has, take(lv.t1), np.nan),
             "blocked_capsule": np.where(has, names[take(lv.capsule) + 1], ""),
             "blocked_box": np.where(has, boxes[take(lv.box) + 1], ""),
+            "blocked_other_capsule": np.where(has, names[take(lv.other_capsule) + 1], ""),
         }, columns=list(RESULT_COLUMNS))
 
     def leaves_dataframe(self):
@@ -249,5 +268,5 @@ class DatasetResult:
             "depth": lv.depth.astype(np.int64), "index": lv.index.astype(np.int64),
             "t0": lv.t0, "t1": lv.t1, "clearance_m": lv.clearance_m, "guard_m": lv.guard_m,
             "certified": lv.certified.astype(bool),
-            "capsule": names[lv.capsule + 1], "box": boxes[lv.box + 1],
+            "capsule": names[lv.capsule + 1], "box": boxes[lv.box + 1], "other_capsule": names[lv.other_capsule + 1],
         }, columns=list(LEAF_COLUMNS))
