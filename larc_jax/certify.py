@@ -36,7 +36,7 @@ from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
-from .self_collision import SelfPairs, self_clearance_np, self_pairs
+from .self_collision import SelfPairs, load_separation, self_clearance_np, self_pairs
 from .tracking import check_tracking_tolerance, tracked_capsules
 from .trajectory import Trajectory, validate_trajectory
 
@@ -264,7 +264,7 @@ def certify(
     delta = check_tracking_tolerance(tracking_tolerance, robot)
     if not isinstance(self_collision, bool):
         raise LarcInputError(f"certify: self_collision must be True or False, got {short_repr(self_collision)}")
-    pairs = self_pairs(robot, capsules, self_margin, self_skip) if self_collision else None
+    pairs = self_pairs(robot, capsules, self_margin, self_skip, proven=load_separation(robot)) if self_collision else None
     check_pairs = pairs if pairs is not None and pairs.n_pairs else None
     planned_capsules, capsules = capsules, tracked_capsules(capsules, delta)  # radii grown by sum_j a_lj delta_j
     start = time.perf_counter()

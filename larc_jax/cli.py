@@ -282,11 +282,16 @@ def _certify_with_progress(args, trajectories, scene, robot, capsules):
 
 
 def _certificate_options(args, robot) -> dict:
-    """What ``certify`` takes beyond the margin and depth: --tracking-tolerance (checked here so
-    a bad value names the option)."""
+    """What ``certify`` takes beyond the margin and depth: --self-collision (--self-margin,
+    --self-skip) and --tracking-tolerance (checked here so a bad value names the option)."""
     from .tracking import check_tracking_tolerance, parse_tracking_tolerance
 
     out = {}
+    if getattr(args, "self_collision", False):
+        out.update(self_collision=True, self_margin=0.0 if args.self_margin is None else args.self_margin,
+                   self_skip=tuple(args.self_skip or ()))
+    elif getattr(args, "self_skip", None) or getattr(args, "self_margin", None) is not None:
+        raise LarcInputError("--self-margin and --self-skip need --self-collision")
     if getattr(args, "tracking_tolerance", None) is not None:
         out["tracking_tolerance"] = check_tracking_tolerance(
             parse_tracking_tolerance(args.tracking_tolerance), robot, "--tracking-tolerance")
@@ -326,6 +331,10 @@ def _cmd_certify(args) -> int:
         from .tracking import parse_tracking_tolerance
 
         parse_tracking_tolerance(args.tracking_tolerance)  # a malformed value fails before the work
+    if args.self_margin is not None:
+        from .self_collision import check_self_margin
+
+        check_self_margin(args.self_margin, "--self-margin")
     if not args.trajectories:
         raise LarcInputError("certify needs trajectory files (TRAJ_FILE ...) or --manifest FILE.csv")
     if not args.scene:
@@ -368,8 +377,10 @@ def _certify_manifest(args) -> int:
                              "give no TRAJ_FILE and no --scene")
     if args.json:
         raise LarcInputError("--json is not available with --manifest (the results go to --out)")
-    if args.tracking_tolerance is not None:
-        raise LarcInputError("--tracking-tolerance is not available with --manifest yet (certify the files directly)")
+    for option in ("tracking_tolerance", "self_collision"):
+        if getattr(args, option):
+            raise LarcInputError(f"--{option.replace('_', '-')} is not available with --manifest yet (certify the "
+                                 "files directly)")
     if not args.out:
         raise LarcInputError("--manifest needs --out RESULTS.parquet (a folder of Parquet parts)")
     _check_certify_options(args)
@@ -549,6 +560,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
                    help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     c.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
+    c.add_argument("--self-collision", action="store_true",
+                   help="also certify that no two links come into contact (capsule pairs not joined by a joint; "
+                        "see larc_jax.self_collision); the output names the pairs not checked")
+    c.add_argument("--self-margin", type=float, default=None, metavar="M",
+                   help="with --self-collision: required distance between links, m (default 0: touching fails)")
+    c.add_argument("--self-skip", action="append", metavar="LINK:LINK",
+                   help="with --self-collision: do not check this link pair (repeatable; named in the output)")
     c.add_argument("--tracking-tolerance", metavar="RAD|JOINT=V,...",
                    help="certify every executed trajectory within this joint tracking error of the planned one: "
                         "one value for all active joints (rad; m for prismatic joints) or JOINT=VALUE,... (others 0)")

@@ -52,14 +52,20 @@ joint by construction) and pairs of links whose relative pose never changes (no 
 the tree path between them, e.g. PIPER's two fingers, held closed on link6: they always touch,
 by design). The robot's allowed-collision list (MoveIt's ``disable_collisions``) is *not* used
 to skip pairs: its "never" pairs only record that 10^4 random samples saw no contact, which is
-not a proof; they are checked like any other pair. Pairs can be skipped explicitly
-(``certify(self_skip=...)``); the result names them.
+not a proof; they are checked like any other pair, unless a pair is *proven* never to come
+closer than a clearance larger than the self margin over the whole joint range
+(:func:`load_separation`: a branch and bound with FCL mesh distances and the motion constants,
+``experiments/self_separation.py``; for PIPER base_link/link2 and link3/link5, whose capsules
+overlap at every configuration though the meshes never touch). Pairs can also be skipped
+explicitly (``certify(self_skip=...)``). The result names every pair not checked, and why.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import itertools
+import json
 import math
 import numbers
 
@@ -80,6 +86,9 @@ __all__ = [
     "self_clearance",
     "self_clearance_np",
     "check_self_margin",
+    "path_joints",
+    "link_geometry_sha256",
+    "load_separation",
     "K_SEG_TAU",
     "K_SEG_LINE",
 ]
@@ -115,18 +124,58 @@ def check_self_margin(value, what: str = "certify: self_margin") -> float:
     return float(value)
 
 
-def _path_joints(robot: Robot, a: int, b: int) -> list[int]:
+def path_joints(robot: Robot, a: int, b: int) -> list[int]:
     """Link indices whose joint lies on the tree path between links ``a`` and ``b``."""
     up_a, up_b = robot.ancestors(a), robot.ancestors(b)
     common = max(set(up_a) & set(up_b), key=lambda i: up_a.index(i))
     return [i for i in up_a[up_a.index(common) + 1:]] + [i for i in up_b[up_b.index(common) + 1:]]
 
 
-def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip=()) -> SelfPairs:
+def link_geometry_sha256(robot: Robot, link: str, geometry: dict | None = None) -> str:
+    """SHA-256 of what ``link``'s collision geometry is (mesh files hashed afresh, origins, scales,
+    primitives: ``geometry``, default :func:`~larc_jax.enclosure.meshes.collision_geometry`)."""
+    from .enclosure.meshes import collision_geometry
+
+    geometry = collision_geometry(robot) if geometry is None else geometry
+    text = json.dumps(geometry.get(link, []), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def load_separation(robot: Robot, path=None) -> dict[tuple[str, str], float]:
+    """Link pairs proven never to touch (``experiments/self_separation.py``), as ``{(link, link):
+    clearance_m}``, from ``path`` (default: the package's PIPER file). Only proofs made for this
+    robot count: the URDF's SHA-256 and both links' collision geometry must match (else the pair
+    is not listed, and is checked)."""
+    import yaml
+
+    from .data import PIPER_SELF_SEPARATION, data_path
+
+    path = data_path(PIPER_SELF_SEPARATION) if path is None else path
+    try:
+        doc = yaml.safe_load(open(path).read())
+    except OSError as exc:
+        raise LarcInputError(f"{path}: cannot read the self-separation proofs ({exc.strerror or exc})") from None
+    if not isinstance(doc, dict) or doc.get("urdf_sha256") != robot.urdf_sha256:
+        return {}
+    from .enclosure.meshes import collision_geometry
+
+    out = {}
+    geometry = collision_geometry(robot) if doc.get("pairs") else {}
+    for p in doc.get("pairs") or []:
+        a, b = str(p["a"]), str(p["b"])
+        if a in robot.link_names and b in robot.link_names and all(
+                p.get("geometry_sha256", {}).get(x) == link_geometry_sha256(robot, x, geometry) for x in (a, b)):
+            out[tuple(sorted((a, b)))] = float(p["clearance_m"])
+    return out
+
+
+def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip=(), proven=None) -> SelfPairs:
     """The checked pairs (module docstring): capsules on different links, minus links joined by
-    one joint, links whose relative pose never changes, and the link pairs in ``skip``
+    one joint, links whose relative pose never changes, link pairs proven apart by more than
+    ``margin_m`` (``proven``: :func:`load_separation`), and the link pairs in ``skip``
     (``(link, link)`` tuples or ``"link:link"`` strings; LarcInputError if not links with capsules)."""
     margin_m = check_self_margin(margin_m)
+    proven = dict(proven or {})
     names = set(capsules.link_names)
     wanted = set()
     for item in skip:
@@ -141,13 +190,15 @@ def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip
         if l1 == l2:
             continue
         key = tuple(sorted((capsules.link_names[c1], capsules.link_names[c2])))
-        path = _path_joints(robot, l1, l2)
+        path = path_joints(robot, l1, l2)
         if len(path) == 1:
             skipped[key] = "adjacent"
         elif all(robot.q_index[i] < 0 for i in path):
             skipped[key] = "rigid"
         elif key in wanted:
             skipped[key] = "skipped"
+        elif proven.get(key, -math.inf) > margin_m:
+            skipped[key] = f"proven apart by {proven[key] * 1000:.2f} mm"
         else:
             first.append(c1)
             second.append(c2)
