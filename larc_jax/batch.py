@@ -110,17 +110,18 @@ def _evaluate_intervals_cached(*args):
 def _evaluate_intervals_self(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin,
                              self_check):
     """:func:`_evaluate_intervals` with the self test (:mod:`larc_jax.self_collision`):
-    ``self_check = (first, second, margin_self)``. Returns ``(g, guard, capsule, box, other)``:
+    ``self_check = (first, second, motion_a, margin_self)``. Returns ``(g, guard, capsule, box, other)``:
     the box pair or the capsule pair (``other`` its second capsule, -1 for a box pair) with the
     smallest ``g - guard``, so a leaf passes iff both tests pass."""
-    first, second, margin_self = self_check
+    first, second, motion_pair, margin_self = self_check
 
     def one(k, s, ai, bi):
         spline = SplineRow(splines, k)
         bnd = jax.tree.map(lambda x: x[k], bounds)
         ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
-        gs, gds, c1, c2 = self_clearance(ev.p_world_a, ev.p_world_b, capsules.radius, ev.motion_b, bnd.guard_m,
-                                         first, second, margin_self)
+        gs, gds, c1, c2 = self_clearance(ev.p_world_a, ev.p_world_b, capsules.radius, ev.h_cov,
+                                         ev.omega_max + bnd.omega_slack, bnd.guard_m, first, second, motion_pair,
+                                         margin_self)
         gs = jnp.where(jnp.isfinite(ev.g) | jnp.isinf(ev.g), gs, jnp.nan)  # non-finite geometry: NaN
         worse = (gs - gds < ev.g - ev.guard) | jnp.isnan(gs)
         return (jnp.where(worse, gs, ev.g), jnp.where(worse, gds, ev.guard), jnp.where(worse, c1, ev.capsule),
@@ -227,7 +228,7 @@ class Batch:
         if self.self_pairs is not None:
             outs.append(np.empty(F, np.int64))
             sp = self.self_pairs
-            extra = ((sp.first, sp.second, np.asarray(sp.margin_m, np.float64)),)
+            extra = ((sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64)),)
         for start in range(0, F, BUCKETS[-1]):
             stop = min(F, start + BUCKETS[-1])
             size = next(s for s in BUCKETS if s >= stop - start)

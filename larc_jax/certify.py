@@ -141,7 +141,7 @@ def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max
             g, guard, cap, box, other = ev.g, ev.guard, ev.capsule, ev.box, -1
             if pairs is not None:
                 gs, gds, c1, c2 = self_clearance_np(ev.p_world_a, ev.p_world_b, np.asarray(capsules.radius, np.float64),
-                                                   ev.motion_b, bnd.guard_m, pairs)
+                                                   ev.h_cov, ev.omega_max + bnd.omega_slack, bnd.guard_m, pairs)
                 if math.isnan(g):
                     gs = math.nan
                 if gs - gds < g - guard or math.isnan(gs):

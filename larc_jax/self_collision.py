@@ -2,13 +2,24 @@
 distance kernel (one pair) with its NumPy reference, and the self test of one interval.
 
 The test. On a leaf ``I`` the interval test (:mod:`larc_jax.interval`) places every capsule at the
-midpoint configuration and inflates it by its motion radius ``b_l``: over ``I`` every point of
-link ``l`` stays within ``r_l + b_l`` of the placed segment. Both links of a pair move, and each
-inflation bounds its own motion, so if the placed segments are farther apart than
-``r_1 + r_2 + b_1 + b_2 + rho_self`` the two links stay more than ``rho_self`` apart at every
-time of ``I``. The certificate clearance of a pair ``p = (l1, l2)`` is::
+midpoint configuration ``q(t')``. Both links of a pair move; the issue's test inflates each by its
+own motion radius, ``r_1 + r_2 + b_1 + b_2 + rho_self``. We use a tighter bound that is just as
+sound: the distance between two links does not change when both move rigidly together, so only
+the *relative* motion counts. Let ``c`` be the deepest common ancestor link of ``l1`` and ``l2``;
+in ``c``'s frame, link ``l1`` moves only through the active joints on the tree path from ``c``
+to ``l1`` (``P_1``), link ``l2`` only through those from ``c`` to ``l2`` (``P_2``, disjoint from
+``P_1``; for a chain, ``l1 = c`` and ``P_1`` is empty). A point ``p`` of capsule ``l`` moves in
+that frame with velocity ``sum_{j in P} qd_j v_j(p)``, ``|v_j(p)| = dist(p, axis_j) <= a_lj``
+(motion constants, valid at every configuration; a distance to an axis is frame-invariant). So
+over ``I`` the pair's relative displacement is at most::
 
-    g_p = dist(seg_l1, seg_l2) * (1 - K_DIST_REL eps_g) - (r_1 + r_2 + b_1 + b_2 + rho_self) * (1 + 4 eps)
+    b_p = h_cov * sum_j A_pj (omega_j + slack_j) * (1 + (n + 64) eps),   A_pj = a_{l1,j} [j in P_1] + a_{l2,j} [j in P_2]
+
+(the same covering radius, speed maxima, slack and rounding as ``b_l``, budget T4-P3; ``A_pj``
+is a copy of one motion constant, exact), and ``b_p <= b_1 + b_2``. The certificate clearance
+of a pair ``p = (l1, l2)`` is::
+
+    g_p = dist(seg_l1, seg_l2) * (1 - K_DIST_REL eps_g) - (r_1 + r_2 + b_p + rho_self) * (1 + 4 eps)
 
 and the pair passes iff ``g_p > G_l1 + G_l2`` (the per-capsule guards of the trajectory,
 :func:`larc_jax.interval.trajectory_rounding`). An interval passes the self test iff every
@@ -26,7 +37,9 @@ absolute part) and lower bounds of the interior minimum whose own rounding is su
 kernel (below). Moving a segment end by ``e`` changes the distance by at most ``e``, so the
 placement errors of both capsules add: ``G_l1 + G_l2``. ``fl(G_l1 + G_l2)`` may be ``u`` low and
 the comparison costs another ``u`` (G4): both within the ``(1 + 8u)`` factor of each guard.
-The shell is a sum of five non-negative float64 terms: ``(1 + 4 eps)`` bounds its rounding.
+The placed segments are at the rounded configuration ``q^``: budget P3 already puts every point
+within ``sum_j a_lj E_j`` (in ``G_l``) of where it is at ``q(t')``. The shell is a sum of four
+non-negative float64 terms: ``(1 + 4 eps)`` bounds its rounding.
 
 Segment-segment distance (:func:`segment_segment_distance`). ``f(s, t) = |P(s) - Q(t)|^2`` is a
 convex quadratic on ``[0, 1]^2``; its minimum lies on the boundary (the four point-segment
@@ -85,6 +98,7 @@ __all__ = [
     "segment_segment_distance_np",
     "self_clearance",
     "self_clearance_np",
+    "pair_motion",
     "check_self_margin",
     "path_joints",
     "link_geometry_sha256",
@@ -107,6 +121,8 @@ class SelfPairs:
     """(P,) int32 capsule index of each pair's first capsule."""
     second: np.ndarray
     """(P,) int32 capsule index of the second capsule."""
+    motion_a: np.ndarray
+    """(P, n) float64 ``A_pj``: the motion constants of the pair's relative motion (module docstring)."""
     margin_m: float
     """rho_self, m: the required distance between the links of a pair (0: touching fails)."""
     skipped: tuple[tuple[str, str, str], ...] = ()
@@ -184,7 +200,8 @@ def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip
             raise LarcInputError(f"self-collision skip {item!r}: expected two different links with capsules "
                                  f"({', '.join(sorted(names))}) as 'LINK:LINK'")
         wanted.add(tuple(sorted(pair)))
-    first, second, skipped = [], [], {}
+    first, second, skipped, rows = [], [], {}, []
+    a = np.asarray(capsules.motion_a, np.float64)
     for c1, c2 in itertools.combinations(range(capsules.n_capsules), 2):
         l1, l2 = capsules.link_index[c1], capsules.link_index[c2]
         if l1 == l2:
@@ -202,7 +219,14 @@ def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip
         else:
             first.append(c1)
             second.append(c2)
-    return SelfPairs(first=np.array(first, np.int32), second=np.array(second, np.int32), margin_m=margin_m,
+            row = np.zeros(robot.n_joints)
+            for c, link in ((c1, l1), (c2, l2)):
+                for i in path:
+                    if robot.q_index[i] >= 0 and i in robot.ancestors(link):  # a joint on link's side
+                        row[robot.q_index[i]] = a[c, robot.q_index[i]]
+            rows.append(row)
+    return SelfPairs(first=np.array(first, np.int32), second=np.array(second, np.int32),
+                     motion_a=np.array(rows, np.float64).reshape(len(rows), robot.n_joints), margin_m=margin_m,
                      skipped=tuple((a, b, why) for (a, b), why in sorted(skipped.items())))
 
 
@@ -284,31 +308,43 @@ def segment_segment_distance_np(p0, p1, q0, q1) -> float:
 # ----------------------------------------------------------------------------------------------
 
 
-def self_clearance(p_world_a, p_world_b, radius, motion_b, guard_m, first, second, margin_m):
+def pair_motion(h_cov, speed, motion_a):
+    """(P,) relative motion radius ``b_p`` of every pair (module docstring), m: ``h_cov`` the
+    covering radius (s), ``speed`` (n,) speed maxima plus slack, ``motion_a`` (P, n) ``A_pj``."""
+    eps = float(jnp.finfo(speed.dtype).eps)
+    n = speed.shape[-1]
+    return h_cov * jnp.matmul(motion_a, speed, precision=jax.lax.Precision.HIGHEST) * (1 + (n + 64) * eps)
+
+
+def self_clearance(p_world_a, p_world_b, radius, h_cov, speed, guard_m, first, second, motion_a, margin_m):
     """``(g, guard, capsule1, capsule2)`` of the checked pair with the smallest ``g - guard`` on one
-    interval (module docstring), from the interval test's placed segments and motion radii
-    (:class:`~larc_jax.interval.IntervalEval`). ``first``, ``second``: (P,) capsule indices
-    (P >= 1); NaN ``g`` if anything is not finite."""
-    eps = float(jnp.finfo(motion_b.dtype).eps)
+    interval (module docstring), from the interval test's placed segments, covering radius and
+    speeds (:class:`~larc_jax.interval.IntervalEval`; ``speed = omega_max + omega_slack``).
+    ``first``, ``second``: (P,) capsule indices (P >= 1), ``motion_a``: (P, n) ``A_pj``; NaN
+    ``g`` if anything is not finite."""
+    eps = float(jnp.finfo(speed.dtype).eps)
     eps_g = float(jnp.finfo(p_world_a.dtype).eps)
     first, second = jnp.asarray(first), jnp.asarray(second)
     dist = jax.vmap(segment_segment_distance)(p_world_a[first], p_world_b[first], p_world_a[second],
                                               p_world_b[second])
-    dist = dist.astype(motion_b.dtype) * (1 - K_DIST_REL * eps_g)
-    shell = (radius[first] + radius[second] + motion_b[first] + motion_b[second] + margin_m) * (1 + 4 * eps)
+    dist = dist.astype(speed.dtype) * (1 - K_DIST_REL * eps_g)
+    shell = (radius[first] + radius[second] + pair_motion(h_cov, speed, motion_a) + margin_m) * (1 + 4 * eps)
     g = dist - shell
     guard = guard_m[first] + guard_m[second]
     k = jnp.argmin(g - guard)  # a NaN is picked first (NumPy semantics) and never certifies
     return g[k], guard[k], first[k], second[k]
 
 
-def self_clearance_np(p_world_a, p_world_b, radius, motion_b, guard_m, pairs: SelfPairs):
+def self_clearance_np(p_world_a, p_world_b, radius, h_cov, speed, guard_m, pairs: SelfPairs):
     """NumPy float64 reference of :func:`self_clearance` (the exact segment distance)."""
+    eps = float(np.finfo(np.float64).eps)
+    speed = np.asarray(speed, np.float64)
+    b = h_cov * (pairs.motion_a @ speed) * (1 + (len(speed) + 64) * eps)
     best, out = math.inf, (math.inf, 0.0, -1, -1)
-    for c1, c2 in zip(pairs.first, pairs.second):
+    for p, (c1, c2) in enumerate(zip(pairs.first, pairs.second)):
         dist = segment_segment_distance_np(p_world_a[c1], p_world_b[c1], p_world_a[c2], p_world_b[c2])
-        dist *= 1 - K_DIST_REL * np.finfo(np.float64).eps
-        shell = (radius[c1] + radius[c2] + motion_b[c1] + motion_b[c2] + pairs.margin_m) * (1 + 4 * np.finfo(float).eps)
+        dist *= 1 - K_DIST_REL * eps
+        shell = (radius[c1] + radius[c2] + b[p] + pairs.margin_m) * (1 + 4 * eps)
         g, guard = dist - shell, float(guard_m[c1] + guard_m[c2])
         if g - guard < best or (math.isnan(g) and not math.isnan(best)):
             best, out = g - guard, (g, guard, int(c1), int(c2))

@@ -108,6 +108,16 @@ def test_pair_policy(robot, capsules):
     for never in [("base_link", "link3"), ("link3", "link6"), ("link2", "link4"), ("link5", "link7")]:
         assert never in names
     assert ("base_link", "link6") in names
+    a = np.asarray(capsules.motion_a)
+    assert np.all(pairs.motion_a <= a[pairs.first] + a[pairs.second])  # never more than b_1 + b_2
+    # Relative motion: link5/link8 move apart only through joint6; base_link/link6 through all six.
+    k = next(p for p, (a, b) in enumerate(zip(pairs.first, pairs.second))
+             if (capsules.names[a], capsules.names[b]) == ("link5", "link8"))
+    c8 = capsules.names.index("link8")
+    np.testing.assert_array_equal(pairs.motion_a[k], np.r_[np.zeros(5), capsules.motion_a[c8, 5]])
+    k = next(p for p, (a, b) in enumerate(zip(pairs.first, pairs.second))
+             if (capsules.names[a], capsules.names[b]) == ("base_link", "link6"))
+    np.testing.assert_array_equal(pairs.motion_a[k], capsules.motion_a[capsules.names.index("link6")])
     proven = {("base_link", "link2"): 0.002}
     p2 = self_pairs(robot, capsules, 0.001, proven=proven)
     assert ("base_link", "link2", "proven apart by 2.00 mm") in p2.skipped
@@ -139,12 +149,12 @@ def test_self_clearance_kernel_matches_reference(robot, capsules):
     radius = np.asarray(capsules.radius, np.float64)
     for q in rng.uniform(robot.q_lower, robot.q_upper, (20, robot.n_joints)):
         pa, pb = capsule_segments_np(robot, capsules, q)
-        b = rng.uniform(0, 0.01, capsules.n_capsules)
+        h, speed = rng.uniform(0, 0.01), rng.uniform(0, 2, robot.n_joints)
         guard = rng.uniform(0, 1e-12, capsules.n_capsules)
         with jax.enable_x64(True):
             g, gd, c1, c2 = (np.asarray(x) for x in jax.jit(self_clearance)(
-                pa, pb, radius, b, guard, pairs.first, pairs.second, np.float64(pairs.margin_m)))
-        g_np, gd_np, c1_np, c2_np = self_clearance_np(pa, pb, radius, b, guard, pairs)
+                pa, pb, radius, h, speed, guard, pairs.first, pairs.second, pairs.motion_a, np.float64(pairs.margin_m)))
+        g_np, gd_np, c1_np, c2_np = self_clearance_np(pa, pb, radius, h, speed, guard, pairs)
         assert float(g) <= g_np + 1e-15 and float(g) == pytest.approx(g_np, abs=1e-9)
         assert float(gd) == pytest.approx(gd_np, rel=1e-15)
 
@@ -226,12 +236,12 @@ def test_stage_b_ompl_paths_pass_the_self_test(robot, capsules):
 
 @pytest.mark.slow
 def test_soundness_against_fcl_on_the_meshes(robot, capsules, fcl_model):
-    """Certified with the self test (margin 2 mm) => at 1 kHz, every checked link pair's meshes (and
-    the pairs proven apart) stay more than 2 mm apart (FCL distance). Trajectories head from a home
+    """Certified with the self test (margin 1 mm) => at 1 kHz, every checked link pair's meshes (and
+    the pairs proven apart) stay more than 1 mm apart (FCL distance). Trajectories head from a home
     pose part of the way towards folds, so some pass close and some are refused."""
     import fcl
 
-    margin = 0.002
+    margin = 0.001  # below the proven clearance of base_link/link2 and link3/link5 (1.6 mm)
     link_pairs = _checked_link_pairs(robot, capsules)
     objs = {}
     for o, li in zip(fcl_model.objects, fcl_model.object_link):
@@ -245,16 +255,19 @@ def test_soundness_against_fcl_on_the_meshes(robot, capsules, fcl_model):
         trajs.append(_fold_trajectory(robot, end=end, duration=1.0, name=f"towards_fold_{k}"))
     res = certify(trajs, Scene.empty(), robot, capsules, self_collision=True, self_margin=margin)
     assert 2 <= res.certified.sum() <= 8, res.certified
+    closest = np.inf
     for traj, ok in zip(trajs, res.certified):
         if not ok:
             continue
         spline = CubicHermiteSpline(traj.t, traj.q, traj.qd)
-        for q in spline(np.linspace(traj.t[0], traj.t[-1], 1001)):
+        for q in spline(np.linspace(traj.t[0], traj.t[-1], 501)):
             fcl_model.set_configuration(q)
             for a, b in link_pairs:
                 d = min(fcl.distance(x, y, fcl.DistanceRequest(), fcl.DistanceResult())
                         for x in objs.get(a, ()) for y in objs.get(b, ()))
                 assert d > margin, (traj.id, a, b, d)
+                closest = min(closest, d)
+    assert closest < 0.01  # certified trajectories do pass close to a self-contact
 
 
 def test_cli_self_collision(tmp_path, robot, capsys):
