@@ -18,7 +18,7 @@ B's collision meshes at ``c`` exceeds that bound plus ``FCL_TOLERANCE_M``, no co
 cell brings the meshes' surfaces together. Cells are bisected along the joint with the largest
 ``a_Bj h_j`` until every cell is proven (or a configuration is found where the surfaces touch,
 or the cell budget runs out: then the pair is not proven). Surfaces apart everywhere on the
-connected joint box means the solids' overlap cannot change, so one configuration where the
+connected joint box (the limits widened by ``WIDEN_RAD``) means the solids' overlap cannot change, so one configuration where the
 two meshes' bounding boxes are disjoint (checked) shows that neither mesh ever lies inside the
 other. The recorded ``clearance_m`` is the smallest ``distance - bound - tolerance`` over the
 cells (refined until it exceeds ``TARGET_CLEARANCE_M``): the certificate skips the pair only
@@ -39,6 +39,10 @@ import numpy as np
 
 from larc_jax.data import PIPER_SELF_SEPARATION, data_path
 
+WIDEN_RAD = 0.05
+"""The proof covers the joint limits widened by this much (revolute joints): a Hermite curve may
+overshoot a limit between waypoints; the certificate skips a proven pair only for trajectories
+whose curve stays inside the proven ranges (:func:`larc_jax.self_collision.curve_ranges`)."""
 TARGET_CLEARANCE_M = 0.001
 """Cells are refined until each proves this clearance (a proof serves self margins below it)."""
 FCL_TOLERANCE_M = 1e-6
@@ -52,6 +56,7 @@ def prove_pair(model, capsules, link_a: str, link_b: str, target_m: float = TARG
     """Branch and bound (module docstring) for ``link_a`` and its descendant ``link_b``: every cell
     is refined until it proves a clearance above ``target_m``. Returns a record: ``proven``,
     ``clearance_m`` (>= target_m), ``cells``, ``joints`` and, if not proven, ``why``."""
+    from larc_jax.robot import JointType
     from larc_jax.self_collision import path_joints
 
     import fcl
@@ -64,7 +69,9 @@ def prove_pair(model, capsules, link_a: str, link_b: str, target_m: float = TARG
     J = [robot.q_index[i] for i in path if robot.q_index[i] >= 0]
     a_B = np.array([max(float(capsules.motion_a[c, j]) for c in range(capsules.n_capsules)
                         if capsules.link_names[c] == link_b) for j in J])
-    lo, hi = np.asarray(robot.q_lower, float)[J], np.asarray(robot.q_upper, float)[J]
+    widen = np.array([WIDEN_RAD if robot.joint_type[i] == JointType.REVOLUTE else 0.0
+                      for i in path if robot.q_index[i] >= 0])
+    lo, hi = np.asarray(robot.q_lower, float)[J] - widen, np.asarray(robot.q_upper, float)[J] + widen
     objs_a = [o for o, li in zip(model.objects, model.object_link) if li == ia]
     objs_b = [o for o, li in zip(model.objects, model.object_link) if li == ib]
     verts = {link: np.concatenate([m.vertices for m in model.meshes[link]]) for link in (link_a, link_b)}
@@ -107,7 +114,8 @@ def prove_pair(model, capsules, link_a: str, link_b: str, target_m: float = TARG
     if not nested_excluded:
         return dict(proven=False, why="no configuration with disjoint bounding boxes (nesting not excluded)",
                     cells=n_cells, joints=J)
-    return dict(proven=True, clearance_m=float(clearance), cells=n_cells, joints=J)
+    return dict(proven=True, clearance_m=float(clearance), cells=n_cells, joints=J, lower=lo.tolist(),
+                upper=hi.tolist())
 
 
 def main(argv=None) -> int:
@@ -129,7 +137,8 @@ def main(argv=None) -> int:
         rec = prove_pair(model, capsules, a, b, progress=lambda msg: print(msg, flush=True))
         print(f"{a}:{b}: {rec} ({time.perf_counter() - t0:.1f} s)", flush=True)
         if rec["proven"]:
-            pairs.append({"a": a, "b": b, "joints": [robot.active_joint_names[j] for j in rec["joints"]],
+            pairs.append({"a": a, "b": b, "joints": {robot.active_joint_names[j]: [lo, hi] for j, lo, hi in
+                                                     zip(rec["joints"], rec["lower"], rec["upper"])},
                           "clearance_m": math.floor(rec["clearance_m"] * 1e6 * (1 - 1e-9)) / 1e6, "cells": rec["cells"],
                           "geometry_sha256": {n: link_geometry_sha256(robot, n) for n in (a, b)}})
     doc = {"urdf_sha256": robot.urdf_sha256, "urdf": Path(robot.urdf_path).name,

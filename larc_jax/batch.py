@@ -110,10 +110,11 @@ def _evaluate_intervals_cached(*args):
 def _evaluate_intervals_self(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin,
                              self_check):
     """:func:`_evaluate_intervals` with the self test (:mod:`larc_jax.self_collision`):
-    ``self_check = (first, second, motion_a, margin_self)``. Returns ``(g, guard, capsule, box, other)``:
+    ``self_check = (first, second, motion_a, margin_self, skip)``, ``skip`` (trajectories, P): the
+    pairs proven apart for each trajectory. Returns ``(g, guard, capsule, box, other)``:
     the box pair or the capsule pair (``other`` its second capsule, -1 for a box pair) with the
     smallest ``g - guard``, so a leaf passes iff both tests pass."""
-    first, second, motion_pair, margin_self = self_check
+    first, second, motion_pair, margin_self, skip = self_check
 
     def one(k, s, ai, bi):
         spline = SplineRow(splines, k)
@@ -121,7 +122,7 @@ def _evaluate_intervals_self(robot, capsules, splines, box_lo, box_hi, box_mask,
         ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
         gs, gds, c1, c2 = self_clearance(ev.p_world_a, ev.p_world_b, capsules.radius, ev.h_cov,
                                          ev.omega_max + bnd.omega_slack, bnd.guard_m, first, second, motion_pair,
-                                         margin_self)
+                                         margin_self, skip[k])
         gs = jnp.where(jnp.isfinite(ev.g) | jnp.isinf(ev.g), gs, jnp.nan)  # non-finite geometry: NaN
         worse = (gs - gds < ev.g - ev.guard) | jnp.isnan(gs)
         return (jnp.where(worse, gs, ev.g), jnp.where(worse, gds, ev.guard), jnp.where(worse, c1, ev.capsule),
@@ -182,6 +183,8 @@ class Batch:
     """Devices the interval axis is sharded over (one device: no sharding)."""
     self_pairs: SelfPairs | None = None
     """Capsule pairs of the self test (:mod:`larc_jax.self_collision`); None: boxes only."""
+    self_skip: np.ndarray | None = None
+    """(padded trajectories, P) bool: pairs proven apart for each trajectory (:meth:`SelfPairs.skip_mask`)."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -228,7 +231,7 @@ class Batch:
         if self.self_pairs is not None:
             outs.append(np.empty(F, np.int64))
             sp = self.self_pairs
-            extra = ((sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64)),)
+            extra = ((sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64), self.self_skip),)
         for start in range(0, F, BUCKETS[-1]):
             stop = min(F, start + BUCKETS[-1])
             size = next(s for s in BUCKETS if s >= stop - start)
@@ -259,7 +262,8 @@ class Batch:
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
             margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None,
-            on_compile: Callable[[bool], None] | None = None, self_pairs: SelfPairs | None = None) -> Batch:
+            on_compile: Callable[[bool], None] | None = None, self_pairs: SelfPairs | None = None,
+            self_skip: Sequence[np.ndarray] | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene and one
     :func:`~larc_jax.interval.trajectory_rounding` per trajectory).
 
@@ -291,4 +295,5 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
         margin=np.asarray(margin, np.float64), dtype=dtype,
         devices=tuple(jax.devices() if devices is None else devices), self_pairs=self_pairs,
+        self_skip=None if self_skip is None else np.stack(list(self_skip) + list(self_skip[:1]) * n_pad),
     )

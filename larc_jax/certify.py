@@ -36,7 +36,7 @@ from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
-from .self_collision import SelfPairs, load_separation, self_clearance_np, self_pairs
+from .self_collision import SelfPairs, curve_ranges, load_separation, self_clearance_np, self_pairs
 from .tracking import check_tracking_tolerance, tracked_capsules
 from .trajectory import Trajectory, validate_trajectory
 
@@ -126,7 +126,7 @@ def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, pro
 
 
 def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max_depth, bounds, progress,
-               pairs: SelfPairs | None = None):
+               pairs: SelfPairs | None = None, skips=None):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
     rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, passed, other)
     for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
@@ -141,7 +141,8 @@ def _reference(trajectories, scenes, names: _Names, robot, capsules, margin, max
             g, guard, cap, box, other = ev.g, ev.guard, ev.capsule, ev.box, -1
             if pairs is not None:
                 gs, gds, c1, c2 = self_clearance_np(ev.p_world_a, ev.p_world_b, np.asarray(capsules.radius, np.float64),
-                                                   ev.h_cov, ev.omega_max + bnd.omega_slack, bnd.guard_m, pairs)
+                                                   ev.h_cov, ev.omega_max + bnd.omega_slack, bnd.guard_m, pairs,
+                                                   skips[k])
                 if math.isnan(g):
                     gs = math.nan
                 if gs - gds < g - guard or math.isnan(gs):
@@ -266,6 +267,9 @@ def certify(
         raise LarcInputError(f"certify: self_collision must be True or False, got {short_repr(self_collision)}")
     pairs = self_pairs(robot, capsules, self_margin, self_skip, proven=load_separation(robot)) if self_collision else None
     check_pairs = pairs if pairs is not None and pairs.n_pairs else None
+    skips = None
+    if check_pairs is not None:  # pairs proven apart where each trajectory's curve goes
+        skips = [check_pairs.skip_mask(*curve_ranges(t, delta)) for t in trajectories]
     planned_capsules, capsules = capsules, tracked_capsules(capsules, delta)  # radii grown by sum_j a_lj delta_j
     start = time.perf_counter()
     names = _Names(scenes)
@@ -275,10 +279,10 @@ def certify(
     with CompileClock() as clock:
         if method == Method.REFERENCE:
             frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, margin, max_depth, bounds,
-                                          progress, check_pairs)
+                                          progress, check_pairs, skips)
         else:
             batch = prepare(trajectories, scenes, robot, capsules, margin, dtype, bounds, devices, on_compile,
-                            self_pairs=check_pairs)
+                            self_pairs=check_pairs, self_skip=skips)
             if method == Method.LARC:
                 frontier, leaves = _larc_batched(batch, len(trajectories), names, max_depth, progress, on_compile)
             else:

@@ -66,10 +66,12 @@ the tree path between them, e.g. PIPER's two fingers, held closed on link6: they
 by design). The robot's allowed-collision list (MoveIt's ``disable_collisions``) is *not* used
 to skip pairs: its "never" pairs only record that 10^4 random samples saw no contact, which is
 not a proof; they are checked like any other pair, unless a pair is *proven* never to come
-closer than a clearance larger than the self margin over the whole joint range
-(:func:`load_separation`: a branch and bound with FCL mesh distances and the motion constants,
-``experiments/self_separation.py``; for PIPER base_link/link2 and link3/link5, whose capsules
-overlap at every configuration though the meshes never touch). Pairs can also be skipped
+closer than a clearance larger than the self margin over a box of joint values (the limits
+widened by 0.05 rad; :func:`load_separation`: a branch and bound with FCL mesh distances and the
+motion constants, ``experiments/self_separation.py``; for PIPER base_link/link2 and link3/link5,
+whose capsules overlap at every configuration though the meshes never touch). Such a pair is
+skipped for a trajectory only if a sound enclosure of its curve (:func:`curve_ranges`, widened
+by the tracking tolerance) lies inside that box, else it is checked. Pairs can also be skipped
 explicitly (``certify(self_skip=...)``). The result names every pair not checked, and why.
 """
 
@@ -99,6 +101,7 @@ __all__ = [
     "self_clearance",
     "self_clearance_np",
     "pair_motion",
+    "curve_ranges",
     "check_self_margin",
     "path_joints",
     "link_geometry_sha256",
@@ -123,6 +126,10 @@ class SelfPairs:
     """(P,) int32 capsule index of the second capsule."""
     motion_a: np.ndarray
     """(P, n) float64 ``A_pj``: the motion constants of the pair's relative motion (module docstring)."""
+    proven_lower: np.ndarray
+    """(P, n) joint values the pair is proven apart above (-inf: any; +inf for every joint: not proven)."""
+    proven_upper: np.ndarray
+    """(P, n) joint values the pair is proven apart below (+inf: any; -inf for every joint: not proven)."""
     margin_m: float
     """rho_self, m: the required distance between the links of a pair (0: touching fails)."""
     skipped: tuple[tuple[str, str, str], ...] = ()
@@ -131,6 +138,11 @@ class SelfPairs:
     @property
     def n_pairs(self) -> int:
         return len(self.first)
+
+    def skip_mask(self, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+        """(P,) bool: pairs proven apart over a box containing the joint ranges ``[lower, upper]``
+        (n,) of a trajectory's curve (:func:`curve_ranges`): the self test need not check them."""
+        return np.all((self.proven_lower <= lower[None]) & (upper[None] <= self.proven_upper), axis=1)
 
 
 def check_self_margin(value, what: str = "certify: self_margin") -> float:
@@ -157,11 +169,12 @@ def link_geometry_sha256(robot: Robot, link: str, geometry: dict | None = None) 
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def load_separation(robot: Robot, path=None) -> dict[tuple[str, str], float]:
+def load_separation(robot: Robot, path=None) -> dict[tuple[str, str], tuple[float, dict]]:
     """Link pairs proven never to touch (``experiments/self_separation.py``), as ``{(link, link):
-    clearance_m}``, from ``path`` (default: the package's PIPER file). Only proofs made for this
-    robot count: the URDF's SHA-256 and both links' collision geometry must match (else the pair
-    is not listed, and is checked)."""
+    (clearance_m, {joint: (lower, upper)})}`` (the joint box the proof covers), from ``path``
+    (default: the package's PIPER file). Only proofs made for this robot count: the URDF's
+    SHA-256 and both links' collision geometry must match (else the pair is not listed, and is
+    checked)."""
     import yaml
 
     from .data import PIPER_SELF_SEPARATION, data_path
@@ -178,10 +191,14 @@ def load_separation(robot: Robot, path=None) -> dict[tuple[str, str], float]:
     out = {}
     geometry = collision_geometry(robot) if doc.get("pairs") else {}
     for p in doc.get("pairs") or []:
+        if not isinstance(p, dict) or not isinstance(p.get("joints"), dict):
+            continue  # not a proof this version can read: the pair is checked
         a, b = str(p["a"]), str(p["b"])
         if a in robot.link_names and b in robot.link_names and all(
                 p.get("geometry_sha256", {}).get(x) == link_geometry_sha256(robot, x, geometry) for x in (a, b)):
-            out[tuple(sorted((a, b)))] = float(p["clearance_m"])
+            box = {str(j): (float(lo), float(hi)) for j, (lo, hi) in dict(p["joints"]).items()}
+            if all(j in robot.active_joint_names for j in box):
+                out[tuple(sorted((a, b)))] = (float(p["clearance_m"]), box)
     return out
 
 
@@ -189,9 +206,12 @@ def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip
     """The checked pairs (module docstring): capsules on different links, minus links joined by
     one joint, links whose relative pose never changes, link pairs proven apart by more than
     ``margin_m`` (``proven``: :func:`load_separation`), and the link pairs in ``skip``
-    (``(link, link)`` tuples or ``"link:link"`` strings; LarcInputError if not links with capsules)."""
+    (``(link, link)`` tuples or ``"link:link"`` strings; LarcInputError if not links with capsules).
+    A proven pair is kept in the list with its proof's joint box (:meth:`SelfPairs.skip_mask`)."""
     margin_m = check_self_margin(margin_m)
     proven = dict(proven or {})
+    n = robot.n_joints
+    plo, phi = [], []
     names = set(capsules.link_names)
     wanted = set()
     for item in skip:
@@ -214,9 +234,19 @@ def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip
             skipped[key] = "rigid"
         elif key in wanted:
             skipped[key] = "skipped"
-        elif proven.get(key, -math.inf) > margin_m:
-            skipped[key] = f"proven apart by {proven[key] * 1000:.2f} mm"
         else:
+            lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+            if key in proven and proven[key][0] > margin_m:
+                clearance, box = proven[key]
+                skipped[key] = (f"proven apart by {clearance * 1000:.2f} mm where the curve stays within "
+                                + ", ".join(f"{j} [{lo_j:.3f}, {hi_j:.3f}]" for j, (lo_j, hi_j) in box.items())
+                                + "; checked elsewhere")
+                lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
+                for j, (a_j, b_j) in box.items():
+                    lo[robot.active_joint_names.index(j)] = a_j
+                    hi[robot.active_joint_names.index(j)] = b_j
+            plo.append(lo)
+            phi.append(hi)
             first.append(c1)
             second.append(c2)
             row = np.zeros(robot.n_joints)
@@ -226,8 +256,27 @@ def self_pairs(robot: Robot, capsules: CapsuleModel, margin_m: float = 0.0, skip
                         row[robot.q_index[i]] = a[c, robot.q_index[i]]
             rows.append(row)
     return SelfPairs(first=np.array(first, np.int32), second=np.array(second, np.int32),
-                     motion_a=np.array(rows, np.float64).reshape(len(rows), robot.n_joints), margin_m=margin_m,
+                     motion_a=np.array(rows, np.float64).reshape(len(rows), n),
+                     proven_lower=np.array(plo, np.float64).reshape(len(rows), n),
+                     proven_upper=np.array(phi, np.float64).reshape(len(rows), n), margin_m=margin_m,
                      skipped=tuple((a, b, why) for (a, b), why in sorted(skipped.items())))
+
+
+def curve_ranges(traj, delta=None):
+    """(lower, upper), (n,) each: joint values enclosing the trajectory's whole Hermite curve, widened by
+    the tracking tolerance ``delta`` (n,) if given. On a segment ``q(s) = h00 q_k + h01 q_k+1 + H
+    (h10 v_k + h11 v_k+1)`` with ``h00 + h01 = 1``, ``h00, h01 >= 0`` and ``|h10|, |h11| <= 4/27``,
+    so ``q`` stays within ``4/27 H (|v_k| + |v_k+1|)`` of ``[min, max](q_k, q_k+1)``; the result is
+    padded by ``1e-9 (1 + |x|)`` for its own rounding."""
+    q = np.asarray(traj.q, np.float64)
+    v = np.abs(np.asarray(traj.qd, np.float64))
+    H = np.diff(np.asarray(traj.t, np.float64))[:, None]
+    over = 4.0 / 27.0 * H * (v[:-1] + v[1:])
+    lo = (np.minimum(q[:-1], q[1:]) - over).min(axis=0)
+    hi = (np.maximum(q[:-1], q[1:]) + over).max(axis=0)
+    if delta is not None:
+        lo, hi = lo - delta, hi + delta
+    return lo - 1e-9 * (1 + np.abs(lo)), hi + 1e-9 * (1 + np.abs(hi))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -316,12 +365,13 @@ def pair_motion(h_cov, speed, motion_a):
     return h_cov * jnp.matmul(motion_a, speed, precision=jax.lax.Precision.HIGHEST) * (1 + (n + 64) * eps)
 
 
-def self_clearance(p_world_a, p_world_b, radius, h_cov, speed, guard_m, first, second, motion_a, margin_m):
+def self_clearance(p_world_a, p_world_b, radius, h_cov, speed, guard_m, first, second, motion_a, margin_m, skip):
     """``(g, guard, capsule1, capsule2)`` of the checked pair with the smallest ``g - guard`` on one
     interval (module docstring), from the interval test's placed segments, covering radius and
     speeds (:class:`~larc_jax.interval.IntervalEval`; ``speed = omega_max + omega_slack``).
-    ``first``, ``second``: (P,) capsule indices (P >= 1), ``motion_a``: (P, n) ``A_pj``; NaN
-    ``g`` if anything is not finite."""
+    ``first``, ``second``: (P,) capsule indices (P >= 1), ``motion_a``: (P, n) ``A_pj``, ``skip``:
+    (P,) pairs proven apart for this trajectory (their ``g`` is +inf); NaN ``g`` if anything is
+    not finite."""
     eps = float(jnp.finfo(speed.dtype).eps)
     eps_g = float(jnp.finfo(p_world_a.dtype).eps)
     first, second = jnp.asarray(first), jnp.asarray(second)
@@ -329,13 +379,13 @@ def self_clearance(p_world_a, p_world_b, radius, h_cov, speed, guard_m, first, s
                                               p_world_b[second])
     dist = dist.astype(speed.dtype) * (1 - K_DIST_REL * eps_g)
     shell = (radius[first] + radius[second] + pair_motion(h_cov, speed, motion_a) + margin_m) * (1 + 4 * eps)
-    g = dist - shell
+    g = jnp.where(skip, jnp.inf, dist - shell)
     guard = guard_m[first] + guard_m[second]
     k = jnp.argmin(g - guard)  # a NaN is picked first (NumPy semantics) and never certifies
     return g[k], guard[k], first[k], second[k]
 
 
-def self_clearance_np(p_world_a, p_world_b, radius, h_cov, speed, guard_m, pairs: SelfPairs):
+def self_clearance_np(p_world_a, p_world_b, radius, h_cov, speed, guard_m, pairs: SelfPairs, skip=None):
     """NumPy float64 reference of :func:`self_clearance` (the exact segment distance)."""
     eps = float(np.finfo(np.float64).eps)
     speed = np.asarray(speed, np.float64)
@@ -345,7 +395,7 @@ def self_clearance_np(p_world_a, p_world_b, radius, h_cov, speed, guard_m, pairs
         dist = segment_segment_distance_np(p_world_a[c1], p_world_b[c1], p_world_a[c2], p_world_b[c2])
         dist *= 1 - K_DIST_REL * eps
         shell = (radius[c1] + radius[c2] + b[p] + pairs.margin_m) * (1 + 4 * eps)
-        g, guard = dist - shell, float(guard_m[c1] + guard_m[c2])
+        g, guard = (math.inf if skip is not None and skip[p] else dist - shell), float(guard_m[c1] + guard_m[c2])
         if g - guard < best or (math.isnan(g) and not math.isnan(best)):
             best, out = g - guard, (g, guard, int(c1), int(c2))
     return out

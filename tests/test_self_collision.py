@@ -118,11 +118,18 @@ def test_pair_policy(robot, capsules):
     k = next(p for p, (a, b) in enumerate(zip(pairs.first, pairs.second))
              if (capsules.names[a], capsules.names[b]) == ("base_link", "link6"))
     np.testing.assert_array_equal(pairs.motion_a[k], capsules.motion_a[capsules.names.index("link6")])
-    proven = {("base_link", "link2"): 0.002}
+    proven = {("base_link", "link2"): (0.002, {"joint1": (-2.0, 2.0), "joint2": (0.0, 3.0)})}
     p2 = self_pairs(robot, capsules, 0.001, proven=proven)
-    assert ("base_link", "link2", "proven apart by 2.00 mm") in p2.skipped
+    assert any(a == "base_link" and b == "link2" and why.startswith("proven apart by 2.00 mm")
+               for a, b, why in p2.skipped)
+    k = [capsules.names[c] for c in p2.first].index("base_link")  # base_link / link2_a
+    inside, outside = np.zeros(6), np.zeros(6)
+    outside[0] = 2.5
+    assert p2.skip_mask(inside, inside)[k] and not p2.skip_mask(inside, outside)[k]
+    assert p2.skip_mask(inside, inside).sum() == 2  # both capsules of link2, nothing else
     p3 = self_pairs(robot, capsules, 0.003, proven=proven)  # the proof is too weak for this margin
     assert not any(a == "base_link" and b == "link2" for a, b, _ in p3.skipped)
+    assert not p3.skip_mask(inside, inside).any()
     p4 = self_pairs(robot, capsules, skip=["link1:link6"])
     assert ("link1", "link6", "skipped") in p4.skipped and p4.n_pairs == pairs.n_pairs - 1
     for bad in (["link1:nolink"], ["link1"], ["link1:link1"]):
@@ -136,7 +143,8 @@ def test_pair_policy(robot, capsules):
 def test_separation_proofs_are_for_this_robot(robot, tmp_path):
     proofs = load_separation(robot)
     assert set(proofs) >= {("base_link", "link2"), ("link3", "link5")}
-    assert all(v > 0 for v in proofs.values())
+    assert all(c > 0.001 and box for c, box in proofs.values())
+    assert proofs[("base_link", "link2")][1]["joint1"][1] > robot.q_upper[0]  # the limits, widened
     other = tmp_path / "proofs.yaml"
     other.write_text((ROOT / "larc_jax/data/piper_self_separation.yaml").read_text().replace(
         robot.urdf_sha256, "0" * 64))
@@ -152,9 +160,12 @@ def test_self_clearance_kernel_matches_reference(robot, capsules):
         h, speed = rng.uniform(0, 0.01), rng.uniform(0, 2, robot.n_joints)
         guard = rng.uniform(0, 1e-12, capsules.n_capsules)
         with jax.enable_x64(True):
+            skip = rng.random(pairs.n_pairs) < 0.2
             g, gd, c1, c2 = (np.asarray(x) for x in jax.jit(self_clearance)(
-                pa, pb, radius, h, speed, guard, pairs.first, pairs.second, pairs.motion_a, np.float64(pairs.margin_m)))
-        g_np, gd_np, c1_np, c2_np = self_clearance_np(pa, pb, radius, h, speed, guard, pairs)
+                pa, pb, radius, h, speed, guard, pairs.first, pairs.second, pairs.motion_a, np.float64(pairs.margin_m),
+                skip))
+        g_np, gd_np, c1_np, c2_np = self_clearance_np(pa, pb, radius, h, speed, guard, pairs, skip)
+        assert not skip[list(zip(pairs.first, pairs.second)).index((c1_np, c2_np))]
         assert float(g) <= g_np + 1e-15 and float(g) == pytest.approx(g_np, abs=1e-9)
         assert float(gd) == pytest.approx(gd_np, rel=1e-15)
 
@@ -192,6 +203,23 @@ def test_gripper_folded_into_the_base_is_refused(robot, capsules, fcl_model):
         assert res.self_margin_m == 0.0
     # Without the self test the same trajectory certifies (no boxes): the new test is what refuses it.
     assert certify(traj, Scene.empty(), robot, capsules).certified[0]
+
+
+def test_proven_pair_is_checked_where_the_curve_leaves_the_proof(robot, capsules):
+    """base_link/link2 is proven apart for joint1 within its limits widened by 0.05 rad. A curve that
+    overshoots joint1's limit between its waypoints leaves that box: the pair is then checked (and its
+    capsules overlap), so the trajectory is refused; the same waypoints at rest are certified."""
+    q = np.array([2.6, 0.8, -0.8, 0.0, 0.3, 0.0])
+    qd = np.zeros((2, 6))
+    qd[0, 0], qd[1, 0] = 1.0, -1.0  # q1(s) = 2.6 + s (1 - s): up to 2.85 rad
+    over = Trajectory(t=np.array([0.0, 1.0]), q=np.stack([q, q]), qd=qd, joint_names=robot.active_joint_names,
+                      id="overshoot")
+    still = Trajectory(t=np.array([0.0, 1.0]), q=np.stack([q, q]), qd=np.zeros((2, 6)),
+                       joint_names=robot.active_joint_names, id="still")
+    res = certify([over, still], Scene.empty(), robot, capsules, self_collision=True, max_depth=3)
+    assert res.certified.tolist() == [False, True]
+    bad = res[0].first_inconclusive
+    assert bad.capsule == "base_link" and bad.other_capsule.startswith("link2")
 
 
 def test_default_results_unchanged_by_the_option(robot, capsules):
