@@ -6,9 +6,9 @@ per active joint (rad for a revolute joint, m for a prismatic one), the certific
 ``|q_e,j(t) - q_j(t)| <= delta_j`` at every instant ``t`` of the horizon (no smoothness asked
 of the error; the executed configurations of active prismatic joints must stay within their
 validated stroke, the limits widened by :data:`~larc_jax.defaults.POSITION_TOLERANCE`, for which
-the motion constants were derived; with the self-collision test, link pairs skipped as *proven
-apart* are proven for configurations within the joint limits, so the executed configurations
-must stay within the limits too).
+the motion constants were derived; with the self-collision test, a link pair proven apart over a
+box of joint values is skipped only if the planned curve's enclosure widened by ``delta`` lies
+in that box, :func:`larc_jax.self_collision.curve_ranges`, so the executions are covered too).
 
 Why growing every capsule radius by ``Delta_l = sum_j a_lj delta_j`` is enough. Fix ``t`` and
 walk the straight joint-space path ``s -> q(t) + s e``, ``s in [0, 1]``, ``e = q_e(t) - q(t)``
