@@ -34,9 +34,10 @@ from .enclosure.capsule import CapsuleModel
 from .enclosure.hull import HullModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
-from .lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
+from .lazy_jax import jax, jnp  # importing this module loads JAX and registers the pytrees (lazy_jax)
 from .robot import Robot
 from .scene import Scene, pad_scenes
+from .self_collision import SelfPairs, self_clearance
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
@@ -153,6 +154,28 @@ def _hull_pairs(hulls, part, T_part, lo, hi, motion_b, margin):
         hulls, part, T_part, lo, hi, motion_b, margin)
 
 
+@jax.jit
+def _self_intervals(robot, capsules, splines, bounds, traj, a, b, self_check):
+    """The self test (:mod:`larc_jax.self_collision`) on F intervals of trajectories ``traj``:
+    ``self_check = (first, second, motion_a, margin_self, skip)``, ``skip`` (trajectories, P): the
+    pairs proven apart for each trajectory. Returns ``(g, guard, capsule, other)`` of the capsule
+    pair with the smallest ``g - guard`` (NaN on non-finite geometry). The capsules are placed
+    as the box test places them (:func:`~larc_jax.interval.evaluate_interval`, no boxes)."""
+    first, second, motion_pair, margin_self, skip = self_check
+    no_box = jnp.zeros((1, 3), robot.T_parent_joint.dtype)
+
+    def one(k, ai, bi):
+        spline = SplineRow(splines, k)
+        bnd = jax.tree.map(lambda x: x[k], bounds)
+        ev = evaluate_interval(robot, capsules, spline, no_box, no_box, jnp.zeros(1, bool), ai, bi, 0.0, bnd)
+        gs, gds, c1, c2 = self_clearance(ev.p_world_a, ev.p_world_b, capsules.radius, ev.h_cov,
+                                         ev.omega_max + bnd.omega_slack, bnd.guard_m, first, second, motion_pair,
+                                         margin_self, skip[k])
+        return jnp.where(jnp.isnan(ev.g), jnp.nan, gs), gds, c1, c2  # ev.g: NaN iff non-finite geometry
+
+    return jax.vmap(one)(traj, a, b)
+
+
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
 
 
@@ -209,6 +232,10 @@ class Batch:
     """Devices the interval axis is sharded over (one device: no sharding)."""
     hulls: HullModel | None = None
     """Hull parts for the cascade (larc_jax.cascade); None: the capsule test alone."""
+    self_pairs: SelfPairs | None = None
+    """Capsule pairs of the self test (:mod:`larc_jax.self_collision`); None: boxes only."""
+    self_skip: np.ndarray | None = None
+    """(padded trajectories, P) bool: pairs proven apart for each trajectory (:meth:`SelfPairs.skip_mask`)."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -265,9 +292,17 @@ class Batch:
 
     def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                  on_compile: Callable[[bool], None] | None = None):
-        """``(a, b, g, guard, capsule, box)`` of the capsule test for every interval (NumPy
-        arrays; ``a, b`` in the trajectory's own time axis); ``on_chunk(n)`` after each chunk of
-        ``n`` intervals, ``on_compile(True/False)`` around a compiling call."""
+        """``(a, b, g, guard, capsule, box, other)`` for every interval (NumPy arrays; ``a, b`` in
+        the trajectory's own time axis): the capsule test, and with :attr:`self_pairs` the self
+        test too (the worse of the two is recorded; ``other`` is the second capsule of a
+        self-collision pair, -1 for a box pair); ``on_chunk(n)`` after each chunk of ``n``
+        intervals, ``on_compile(True/False)`` around a compiling call."""
+        a, b, box_test, self_test = self._tests(traj, depth, index, on_chunk, on_compile)
+        return (a, b, *_worse(box_test, self_test))
+
+    def _tests(self, traj, depth, index, on_chunk, on_compile):
+        """``(a, b, box_test, self_test)``: ``(g, guard, capsule, box)`` of the capsule test and
+        ``(g, guard, capsule, other)`` of the self test (None without :attr:`self_pairs`)."""
         a, b = self.endpoints(traj, depth, index)
         ar, br = self._rebased(traj, a, b)
         run = self._kernel(_evaluate_intervals_broad if self.use_broad_phase else _evaluate_intervals, on_compile)
@@ -277,7 +312,16 @@ class Batch:
             g[redo], guard[redo], cap[redo], box[redo], _ = self._bucketed(
                 self._kernel(_evaluate_intervals, on_compile),
                 [traj[redo], self.scene_of[traj[redo]], ar[redo], br[redo]])
-        return a, b, g, guard, cap.astype(np.int64), box.astype(np.int64)
+        self_test = None
+        if self.self_pairs is not None:
+            sp = self.self_pairs
+            check = (sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64), self.self_skip)
+            call = _self_intervals if len(self.devices) > 1 else _cached(_self_intervals)
+            gs, gds, c1, c2 = self._bucketed(
+                lambda t, x, y: _call(call, (self.robot, self.capsules, self.splines, self.bounds, t, x, y, check),
+                                      on_compile), [traj, ar, br])
+            self_test = (gs, gds, c1.astype(np.int64), c2.astype(np.int64))
+        return a, b, (g, guard, cap.astype(np.int64), box.astype(np.int64)), self_test
 
     @property
     def use_broad_phase(self) -> bool:
@@ -292,44 +336,59 @@ class Batch:
     def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                          on_compile: Callable[[bool], None] | None = None):
         """The cascade (larc_jax.cascade) on every interval: ``(a, b, g, guard, capsule, box,
-        stage)``, stage 1 for intervals the capsule test passes, 2 for those only the hull test
-        passes, 0 for the rest (``stage > 0`` iff ``g > guard``). Without :attr:`hulls`, the
-        capsule test alone."""
-        a, b, g, guard, cap, box = self.evaluate(traj, depth, index, on_chunk, on_compile)
-        stage = (g > guard).astype(np.int8)
-        open_ = np.flatnonzero(~(g > guard) & ~np.isnan(g))
-        if self.hulls is None or not len(open_):
-            return a, b, g, guard, cap, box, stage
-        tr = traj[open_]
-        ar, br = self._rebased(tr, a[open_], b[open_])
-        d = self._bucketed(
-            lambda t, sc, x, y: _call(_interval_pairs, (self.robot, self.capsules, self.hulls, self.splines,
-                                                        self.box_lo, self.box_hi, self.box_mask, self.bounds, t, sc,
-                                                        x, y, self.margin), on_compile),
-            [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS)
-        links = Links.of(self.capsules, self.hulls)
-        G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
-        G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
-        tried, triples = select_pairs(links, d.g_capsule - G_c[:, :, None], d.g_upper - G_p[:, :, None])
-        g_hull = guard_hull = np.zeros(0)
-        if len(triples):
-            i, p, k = triples.T
-            sc = self.scene_of[tr[i]]
-            g_hull = self._bucketed(
-                lambda pp, T, lo, hi, mb: _call(_hull_pairs, (self.hulls, pp, T, lo, hi, mb, self.margin), on_compile),
-                [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
-                buckets=CASCADE_BUCKETS)
-            guard_hull = G_p[i, p]
-        g2, guard2, cap2, box2, passed = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
-        g, guard, cap, box = g.copy(), guard.copy(), cap.copy(), box.copy()
-        g[open_], guard[open_], cap[open_], box[open_] = g2, guard2, cap2, box2
-        stage[open_] = np.where(passed, 2, 0)
-        return a, b, g, guard, cap, box, stage
+        other, stage)``, stage 1 for intervals the capsule test passes, 2 for those only the hull
+        test passes, 0 for the rest (``stage > 0`` iff ``g > guard``). The hull test runs only
+        where the capsules fail a box and the self test (if any) passes. Without :attr:`hulls`,
+        the capsule test alone."""
+        a, b, (g, guard, cap, box), self_test = self._tests(traj, depth, index, on_chunk, on_compile)
+        self_ok = np.ones(len(traj), bool) if self_test is None else self_test[0] > self_test[1]
+        stage = ((g > guard) & self_ok).astype(np.int8)
+        open_ = np.flatnonzero(~(g > guard) & ~np.isnan(g) & self_ok)
+        if self.hulls is not None and len(open_):
+            tr = traj[open_]
+            ar, br = self._rebased(tr, a[open_], b[open_])
+            d = self._bucketed(
+                lambda t, sc, x, y: _call(_interval_pairs, (self.robot, self.capsules, self.hulls, self.splines,
+                                                            self.box_lo, self.box_hi, self.box_mask, self.bounds, t,
+                                                            sc, x, y, self.margin), on_compile),
+                [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS)
+            links = Links.of(self.capsules, self.hulls)
+            G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
+            G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
+            tried, triples = select_pairs(links, d.g_capsule - G_c[:, :, None], d.g_upper - G_p[:, :, None])
+            g_hull = guard_hull = np.zeros(0)
+            if len(triples):
+                i, p, k = triples.T
+                sc = self.scene_of[tr[i]]
+                g_hull = self._bucketed(
+                    lambda pp, T, lo, hi, mb: _call(_hull_pairs, (self.hulls, pp, T, lo, hi, mb, self.margin),
+                                                    on_compile),
+                    [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
+                    buckets=CASCADE_BUCKETS)
+                guard_hull = G_p[i, p]
+            g2, guard2, cap2, box2, passed = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
+            g, guard, cap, box = g.copy(), guard.copy(), cap.copy(), box.copy()
+            g[open_], guard[open_], cap[open_], box[open_] = g2, guard2, cap2, box2
+            stage[open_] = np.where(passed, 2, 0)
+        return (a, b, *_worse((g, guard, cap, box), self_test), stage)
+
+
+def _worse(box_test, self_test):
+    """``(g, guard, capsule, box, other)``: the record of the box test, or of the self test where
+    its ``g - guard`` is smaller (or NaN): a leaf passes iff both tests pass."""
+    g, guard, cap, box = box_test
+    if self_test is None:
+        return g, guard, cap, box, np.full(len(g), -1, np.int64)
+    gs, gds, c1, c2 = self_test
+    worse = (gs - gds < g - guard) | np.isnan(gs)
+    return (np.where(worse, gs, g), np.where(worse, gds, guard), np.where(worse, c1, cap), np.where(worse, 0, box),
+            np.where(worse, c2, -1))
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
             margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None,
-            on_compile: Callable[[bool], None] | None = None, hulls: HullModel | None = None) -> Batch:
+            on_compile: Callable[[bool], None] | None = None, hulls: HullModel | None = None,
+            self_pairs: SelfPairs | None = None, self_skip: Sequence[np.ndarray] | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene and one
     :func:`~larc_jax.interval.trajectory_rounding` per trajectory).
 
@@ -361,5 +420,6 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
         margin=np.asarray(margin, np.float64), dtype=dtype,
         devices=tuple(jax.devices() if devices is None else devices),
-        hulls=None if hulls is None else _hulls_geometry(hulls, dtype),
+        hulls=None if hulls is None else _hulls_geometry(hulls, dtype), self_pairs=self_pairs,
+        self_skip=None if self_skip is None else np.stack(list(self_skip) + list(self_skip[:1]) * n_pad),
     )

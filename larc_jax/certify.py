@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import time
 from typing import Callable, Sequence
 
@@ -42,6 +43,8 @@ from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
+from .self_collision import SelfPairs, curve_ranges, load_separation, self_clearance_np, self_pairs
+from .tracking import check_tracking_tolerance, tracked_capsules
 from .trajectory import Trajectory, validate_trajectory
 
 __all__ = [
@@ -86,16 +89,18 @@ class _Names:
         return out
 
 
-def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, stage) -> LeafTable:
+def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, stage, other) -> LeafTable:
     traj = np.asarray(traj, np.int64)
-    has = names.has_boxes[traj]
+    other = np.full(len(traj), -1, np.int64) if other is None else np.asarray(other, np.int64)
+    has = names.has_boxes[traj] & (other < 0)
     return LeafTable(
         traj=traj, depth=np.asarray(depth, np.int16), index=np.asarray(index, np.int64),
         t0=np.asarray(a, np.float64), t1=np.asarray(b, np.float64), clearance_m=np.asarray(g, np.float64),
         guard_m=np.asarray(guard, np.float64), certified=np.asarray(stage, np.int8) > 0,
         stage=np.asarray(stage, np.int8),
-        capsule=np.where(has, np.asarray(cap, np.int64), -1).astype(np.int32),
+        capsule=np.where(has | (other >= 0), np.asarray(cap, np.int64), -1).astype(np.int32),
         box=np.where(has, names.offset[traj] + np.asarray(box, np.int64), -1).astype(np.int32),
+        other_capsule=other.astype(np.int32),
     )
 
 
@@ -109,11 +114,11 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress,
             break
         depth = np.full(len(traj), d)
         frontier[:, d] = np.bincount(traj, minlength=n_traj)
-        a, b, g, guard, cap, box, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
+        a, b, g, guard, cap, box, other, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
         passed = stage > 0  # g > guard; NaN never passes (larc_jax.cascade)
         final = passed | (d == max_depth)
         parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], g[final],
-                                 guard[final], cap[final], box[final], stage[final]))
+                                 guard[final], cap[final], box[final], stage[final], other[final]))
         open_ = ~final
         traj = np.repeat(traj[open_], 2)
         index = np.stack([2 * index[open_], 2 * index[open_] + 1], axis=1).reshape(-1)
@@ -125,16 +130,17 @@ def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, pro
     traj = np.repeat(np.arange(n_traj, dtype=np.int64), m)
     index = np.tile(np.arange(m, dtype=np.int64), n_traj)
     depth = np.full(len(traj), depth_fixed)
-    a, b, g, guard, cap, box, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
+    a, b, g, guard, cap, box, other, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
     frontier = np.zeros((n_traj, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
     return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, g, guard, cap, box,
-                                                        stage)])
+                                                        stage, other)])
 
 
-def _reference(trajectories, scenes, names: _Names, robot, capsules, hulls, margin, max_depth, bounds, progress):
+def _reference(trajectories, scenes, names: _Names, robot, capsules, hulls, margin, max_depth, bounds, progress,
+               pairs: SelfPairs | None = None, skips=None):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
-    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, stage)
+    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, stage, other)
     links = Links.of(capsules, hulls) if hulls is not None else None
     for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
         ts, te = float(traj.t[0]), float(traj.t[-1])
@@ -142,23 +148,39 @@ def _reference(trajectories, scenes, names: _Names, robot, capsules, hulls, marg
         def certify_node(d: int, i: int) -> bool:  # Algorithm 1
             a, b = (float(x) for x in dyadic_ends(ts, te, d, i))
             frontier[k, d] += 1
-            if links is None:
-                ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bnd)
-                g, guard, cap, box, stage = ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard)
-            else:
+            ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bnd)
+            g, guard, cap, box, stage, other = ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard), -1
+            self_ok = True
+            if pairs is not None:
+                # The self test on the capsule stage's placement (larc_jax.self_collision): the
+                # leaf passes iff both pass, and records the worse of the two.
+                gs, gds, c1, c2 = self_clearance_np(ev.p_world_a, ev.p_world_b, np.asarray(capsules.radius, np.float64),
+                                                   ev.h_cov, ev.omega_max + bnd.omega_slack, bnd.guard_m, pairs,
+                                                   skips[k])
+                if math.isnan(ev.g):
+                    gs = math.nan
+                self_ok = gs > gds
+            if links is not None and self_ok and not stage and not math.isnan(ev.g):
+                # The hull stage, as the batched schedulers run it: only where the capsules fail a
+                # box and the self test passes.
                 g, guard, cap, box, stage = cascade_np(robot, capsules, hulls, links, traj, scene, a, b, margin, bnd)
+            if pairs is not None:
+                if gs - gds < g - guard or math.isnan(gs):
+                    g, guard, cap, box, other = gs, gds, c1, 0, c2
+                if not self_ok:
+                    stage = 0
             if progress:
                 progress(1)
             passed = stage > 0
             if passed or d == max_depth:
-                rows.append((k, d, i, a, b, g, guard, cap, box, stage))
+                rows.append((k, d, i, a, b, g, guard, cap, box, stage, other))
                 return passed
             left = certify_node(d + 1, 2 * i)
             right = certify_node(d + 1, 2 * i + 1)
             return left and right
 
         certify_node(0, 0)
-    cols = list(zip(*rows)) if rows else [[]] * 10
+    cols = list(zip(*rows)) if rows else [[]] * 11
     return frontier, LeafTable.concatenate([_leaf_table(names, *cols)])
 
 
@@ -224,6 +246,10 @@ def certify(
     on_compile: Callable[[bool], None] | None = None,
     enclosure: str = DEFAULT_ENCLOSURE,
     hulls: HullModel | None = None,
+    tracking_tolerance=None,
+    self_collision: bool = False,
+    self_margin: float = 0.0,
+    self_skip=(),
 ) -> DatasetResult:
     """Certify trajectories against their scenes in one call.
 
@@ -249,6 +275,15 @@ def certify(
     The gripper: links below held prismatic joints (fingers) are enclosed over their whole
     stroke unless the robot states their value (``load_robot_file(path, hold={...})``); the
     result says which (``held_joints``).
+      tracking_tolerance: joint tracking error delta_j the certificate allows (rad, m for a
+        prismatic joint): one number, one per active joint, or a mapping joint name -> number
+        (others 0). The certificate then holds for every executed trajectory within delta_j of
+        the planned one at every instant (:mod:`larc_jax.tracking`); None: the plan only.
+      self_collision: also certify that no two links of a checked pair come within
+        ``self_margin`` (m, default 0: touching fails) at any time (:mod:`larc_jax.self_collision`
+        says which pairs are checked); a leaf then passes iff both tests pass, and records the
+        blocking box or capsule pair. ``self_skip``: link pairs ``"LINK:LINK"`` not to check
+        (named in the result).
 
     Returns a :class:`DatasetResult`; its ``to_dataframe()`` gives one row per trajectory, its
     ``compile_time_s`` the part of ``wall_time_s`` spent compiling. Links that ``capsules``
@@ -261,13 +296,23 @@ def certify(
         raise LarcInputError(f"certify: unknown method {short_repr(method)} ({', '.join(METHODS)})") from None
     trajectories, scenes, margin, max_depth, coarse_depth, dtype = _check_inputs(
         trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress)
+    delta = check_tracking_tolerance(tracking_tolerance, robot)
+    if not isinstance(self_collision, bool):
+        raise LarcInputError(f"certify: self_collision must be True or False, got {short_repr(self_collision)}")
+    pairs = self_pairs(robot, capsules, self_margin, self_skip, proven=load_separation(robot)) if self_collision else None
+    check_pairs = pairs if pairs is not None and pairs.n_pairs else None
+    skips = None
+    if check_pairs is not None:  # pairs proven apart where each trajectory's curve goes
+        skips = [check_pairs.skip_mask(*curve_ranges(t, delta)) for t in trajectories]
     check_enclosure(enclosure, "certify: enclosure")
     if enclosure == "hull":
         hulls = hulls if hulls is not None else hull_model(robot, capsules.hull_parts, capsules.padding_m)
         hulls = hulls.on_links(capsules.link_names)  # links a capsule model excludes are excluded here too
         Links.of(capsules, hulls)  # the same links, or a clear error
+        hulls = tracked_capsules(hulls, delta)  # the parts' radii grow as the capsules' do
     else:
         hulls = None
+    planned_capsules, capsules = capsules, tracked_capsules(capsules, delta)  # radii grown by sum_j a_lj delta_j
     start = time.perf_counter()
     names = _Names(scenes)
     if method == Method.REFERENCE:
@@ -276,7 +321,7 @@ def certify(
     with CompileClock() as clock:
         if method == Method.REFERENCE:
             frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, hulls, margin, max_depth,
-                                          bounds, progress)
+                                          bounds, progress, check_pairs, skips)
         else:
             # Trajectories are prepared (padded into device arrays) MAX_BATCH_TRAJECTORIES at a
             # time, so memory does not grow with the dataset; each interval's result does not
@@ -286,7 +331,8 @@ def certify(
                 sl = slice(lo, lo + MAX_BATCH_TRAJECTORIES)
                 part, n_part = names.part(sl), len(trajectories[sl])
                 batch = prepare(trajectories[sl], scenes[sl], robot, capsules, margin, dtype, bounds[sl], devices,
-                                on_compile, hulls)
+                                on_compile, hulls, self_pairs=check_pairs,
+                                self_skip=None if skips is None else skips[sl])
                 if method == Method.LARC:
                     f, lv = _larc_batched(batch, n_part, part, max_depth, progress, on_compile)
                 else:
@@ -298,10 +344,16 @@ def certify(
             frontier = np.concatenate(frontiers)
             leaves = LeafTable.concatenate(parts) if len(parts) > 1 else parts[0]
     wall = time.perf_counter() - start
-    result = _dataset_result(method.value, trajectories, scenes, names, capsules, frontier, leaves, bounds,
+    result = _dataset_result(method.value, trajectories, scenes, names, planned_capsules, frontier, leaves, bounds,
                              float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds),
                              dtype=np.dtype(dtype).name)
-    return dataclasses.replace(result, enclosure=enclosure, held_joints=held_joint_states(robot))
+    result = dataclasses.replace(result, enclosure=enclosure, held_joints=held_joint_states(robot))
+    if delta is not None:
+        result = dataclasses.replace(result, tracking_tolerance=tuple(
+            (name, float(x)) for name, x in zip(robot.active_joint_names, delta)))
+    if pairs is not None:
+        result = dataclasses.replace(result, self_margin_m=pairs.margin_m, self_skipped=pairs.skipped)
+    return result
 
 
 def _dataset_result(method, trajectories, scenes, names, capsules, frontier, leaves: LeafTable, bounds,

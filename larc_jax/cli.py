@@ -303,13 +303,30 @@ def _certify_with_progress(args, trajectories, scene, robot, capsules):
         with CompileClock() as clock:
             result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
                              max_depth=args.max_depth, enclosure=args.enclosure, progress=lambda k: bar.update(k),
-                             on_compile=on_compile)
+                             on_compile=on_compile, **_certificate_options(args, robot))
     log.debug("kernels: %d compiled or loaded, %d of them from the persistent cache; tracing %.2f s, lowering "
               "%.2f s, XLA compile or cache load %.2f s", clock.compiles, clock.cache_hits, clock.trace_s,
               clock.lower_s, clock.compile_s)
     log.debug("certified %d trajectories in %.3f s, of which %.3f s compiling (frontier per depth %s)", n,
               result.wall_time_s, result.compile_time_s, list(result.frontier_sizes))
     return result
+
+
+def _certificate_options(args, robot) -> dict:
+    """What ``certify`` takes beyond the margin and depth: --self-collision (--self-margin,
+    --self-skip) and --tracking-tolerance (checked here so a bad value names the option)."""
+    from .tracking import check_tracking_tolerance, parse_tracking_tolerance
+
+    out = {}
+    if getattr(args, "self_collision", False):
+        out.update(self_collision=True, self_margin=0.0 if args.self_margin is None else args.self_margin,
+                   self_skip=tuple(args.self_skip or ()))
+    elif getattr(args, "self_skip", None) or getattr(args, "self_margin", None) is not None:
+        raise LarcInputError("--self-margin and --self-skip need --self-collision")
+    if getattr(args, "tracking_tolerance", None) is not None:
+        out["tracking_tolerance"] = check_tracking_tolerance(
+            parse_tracking_tolerance(args.tracking_tolerance), robot, "--tracking-tolerance")
+    return out
 
 
 def _capsules_without(args, robot, capsules):
@@ -341,6 +358,14 @@ def _cmd_certify(args) -> int:
     for option in ("out", "dask"):
         if getattr(args, option):
             raise LarcInputError(f"--{option} needs --manifest")
+    if args.tracking_tolerance is not None:
+        from .tracking import parse_tracking_tolerance
+
+        parse_tracking_tolerance(args.tracking_tolerance)  # a malformed value fails before the work
+    if args.self_margin is not None:
+        from .self_collision import check_self_margin
+
+        check_self_margin(args.self_margin, "--self-margin")
     if not args.trajectories:
         raise LarcInputError("certify needs trajectory files (TRAJ_FILE ...) or --manifest FILE.csv")
     if not args.scene:
@@ -393,6 +418,10 @@ def _certify_manifest(args) -> int:
         raise LarcInputError("--json is not available with --manifest (the results go to --out)")
     if args.certificate:
         raise LarcInputError("--certificate is not available with --manifest")
+    for option in ("tracking_tolerance", "self_collision"):
+        if getattr(args, option):
+            raise LarcInputError(f"--{option.replace('_', '-')} is not available with --manifest yet (certify the "
+                                 "files directly)")
     if not args.out:
         raise LarcInputError("--manifest needs --out RESULTS.parquet (a folder of Parquet parts)")
     _check_certify_options(args)
@@ -608,6 +637,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
                    help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     c.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
+    c.add_argument("--self-collision", action="store_true",
+                   help="also certify that no two links come into contact (capsule pairs not joined by a joint; "
+                        "see larc_jax.self_collision); the output names the pairs not checked")
+    c.add_argument("--self-margin", type=float, default=None, metavar="M",
+                   help="with --self-collision: required distance between links, m (default 0: touching fails)")
+    c.add_argument("--self-skip", action="append", metavar="LINK:LINK",
+                   help="with --self-collision: do not check this link pair (repeatable; named in the output)")
+    c.add_argument("--tracking-tolerance", metavar="RAD|JOINT=V,...",
+                   help="certify every executed trajectory within this joint tracking error of the planned one: "
+                        "one value for all active joints (rad; m for prismatic joints) or JOINT=VALUE,... (others 0)")
     c.add_argument("--ignore-link", action="append", metavar="LINK",
                    help="leave this link out of the certificate (repeatable): only a link that never "
                         "moves, e.g. a fixed base standing on its table; the output names it")

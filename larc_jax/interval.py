@@ -81,7 +81,10 @@ G. Geometry (dtype g).
       elsewhere. The relative part is removed by ``(1 - K_DIST_REL eps_g)``, the rest is in G.
   G3. Boxes: float64 boxes are exact; float32 corners are rounded outwards (lo down, hi up),
       so the box tested contains the user's box.
-  G4. Sums: ``(r + b + rho) (1 + 2 eps)`` is an upper bound; ``fl(x - y) > G`` implies
+  G4. Sums: ``(r + b + rho) (1 + 2 eps)`` is an upper bound (``r`` is the capsule radius the
+      kernel is given: with a tracking tolerance, :mod:`larc_jax.tracking` has grown it by
+      ``Delta_l = fl(sum_j a_lj delta_j) (1 + (n + 4) eps)`` and rounded the sum up, so it is
+      at least the real ``r_l + sum_j a_lj delta_j``); ``fl(x - y) > G`` implies
       ``x - y > G (1 - u)``, covered by the factor ``(1 + 8u)`` of G.
 
 Guard of capsule ``l`` on one trajectory (:func:`trajectory_rounding`), metres::

@@ -41,7 +41,8 @@ def table_lines(result: DatasetResult) -> list[str]:
     lines = [head]
     for r in result:
         bad = r.first_inconclusive
-        blocked = f"t=[{bad.t0:.4f}, {bad.t1:.4f}] s  {bad.capsule or '-'} / {bad.box or '-'}" if bad else ""
+        other = f"{bad.other_capsule} (self)" if bad and bad.other_capsule else (bad.box or "-") if bad else ""
+        blocked = f"t=[{bad.t0:.4f}, {bad.t1:.4f}] s  {bad.capsule or '-'} / {other}" if bad else ""
         lines.append(f"{r.id:<{width}}  {'CERTIFIED' if r.certified else 'UNCERTIFIED':<11}  "
                      f"{r.evaluations:>6}  {format_clearance(r.min_clearance_m):>14}  {blocked}".rstrip())
     n_ok = sum(r.certified for r in result)
@@ -50,6 +51,12 @@ def table_lines(result: DatasetResult) -> list[str]:
     lines.append(f"{n_ok} of {len(result)} certified ({result.method}, {enclosure}, margin {result.margin_m * 1000:g} mm, "
                  f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s{compiling})")
     lines.append(gripper_text(result))
+    if result.self_margin_m is not None:
+        lines.append(f"self-collision checked (margin {result.self_margin_m * 1000:g} mm); link pairs not checked: "
+                     + (", ".join(f"{a}:{b} ({why})" for a, b, why in result.self_skipped) or "none"))
+    if result.tracking_tolerance:
+        lines.append("the certificate allows a tracking error of " + ", ".join(
+            f"{name} {x:g}" for name, x in result.tracking_tolerance) + " (rad; m for prismatic joints)")
     if result.excluded_links:
         lines.append(f"the certificate excludes links: {', '.join(result.excluded_links)} (never checked against "
                      "the boxes)")
@@ -63,6 +70,10 @@ def result_json(result: DatasetResult, scene_path) -> dict:
     return {
         "method": result.method, "enclosure": result.enclosure, "margin_m": result.margin_m,
         "max_depth": result.max_depth, "scene": str(scene_path), "excluded_links": list(result.excluded_links),
+        "tracking_tolerance": dict(result.tracking_tolerance) or None,
+        "self_collision": None if result.self_margin_m is None else {
+            "margin_m": result.self_margin_m,
+            "skipped_pairs": [{"a": a, "b": b, "reason": why} for a, b, why in result.self_skipped]},
         "wall_time_s": result.wall_time_s, "compile_time_s": result.compile_time_s,
         "held_joints": {name: ({"state": state, "value": lo} if state != "stroke" else
                                {"state": state, "range": [lo, hi]})
@@ -76,6 +87,7 @@ def result_json(result: DatasetResult, scene_path) -> dict:
              "first_inconclusive": (
                  {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
                   "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,
+                  "other_capsule": r.first_inconclusive.other_capsule,
                   "clearance_m": num(r.first_inconclusive.clearance_m),
                   "guard_m": num(r.first_inconclusive.guard_m)}
                  if r.first_inconclusive else None)}

@@ -25,11 +25,12 @@ STAGES = ("", "capsule", "hull")
 """Which test passed a leaf, by code: 0 none (not certified), 1 the capsule test, 2 the hull test
 of the cascade (larc_jax.cascade)."""
 
-LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box", "stage")
+LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box",
+                "other_capsule", "stage")
 """Columns of :meth:`DatasetResult.leaves_dataframe` (and of ``larc certify --leaves``)."""
 
 RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "guard_m", "duration_s",
-                  "blocked_t0", "blocked_t1", "blocked_capsule", "blocked_box")
+                  "blocked_t0", "blocked_t1", "blocked_capsule", "blocked_box", "blocked_other_capsule")
 """Columns of :meth:`DatasetResult.to_dataframe`."""
 
 
@@ -51,6 +52,9 @@ class Leaf:
     capsule: str
     """The recorded pair: the one minimising clearance - guard over all pairs."""
     box: str
+    other_capsule: str = ""
+    """With the self-collision test: the second capsule when the recorded pair is a capsule pair
+    (then ``box`` is ''); '' for a capsule/box pair."""
     stage: str = ""
     """Which test passed the leaf: ``capsule``, ``hull`` (larc_jax.cascade), or ``""`` (none)."""
 
@@ -60,7 +64,8 @@ class LeafTable:
     """Leaves as columns (NumPy arrays of one length), sorted by trajectory, then time.
 
     ``capsule`` indexes the result's ``capsule_names`` and ``box`` its ``box_names`` (-1: no
-    pair, i.e. a scene without boxes).
+    pair, i.e. a scene without boxes, or a self-collision pair); ``other_capsule`` the second
+    capsule of a self-collision pair (-1: a capsule/box pair).
     """
 
     traj: np.ndarray
@@ -75,6 +80,7 @@ class LeafTable:
     certified: np.ndarray
     capsule: np.ndarray
     box: np.ndarray
+    other_capsule: np.ndarray
     stage: np.ndarray
     """int8 index into :data:`STAGES`: 0 none, 1 capsule test, 2 hull test."""
 
@@ -116,6 +122,14 @@ class TrajectoryResult:
     """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
     enclosure: str = "capsules"
     """``capsules`` or ``hull`` (the cascade): which enclosures the certificate used."""
+    tracking_tolerance: tuple[tuple[str, float], ...] = ()
+    """(active joint, delta_j) the certificate allows as tracking error, rad or m
+    (:mod:`larc_jax.tracking`); empty: it covers the planned trajectory only."""
+    self_margin_m: float | None = None
+    """With the self-collision test (:mod:`larc_jax.self_collision`): its margin rho_self, m;
+    None: the certificate says nothing about self-collision."""
+    self_skipped: tuple[tuple[str, str, str], ...] = ()
+    """With the self-collision test: the link pairs not checked, and why."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -165,6 +179,14 @@ class DatasetResult:
     [lo, hi]: enclosed over the whole stroke) or ``held`` (a held revolute joint, at lo == hi)."""
     dtype: str = "float64"
     """Geometry dtype of the run (``certify(dtype=...)``; the guard accounts for it)."""
+    tracking_tolerance: tuple[tuple[str, float], ...] = ()
+    """(active joint, delta_j) the certificate allows as tracking error, rad or m
+    (:mod:`larc_jax.tracking`); empty: it covers the planned trajectory only."""
+    self_margin_m: float | None = None
+    """With the self-collision test (:mod:`larc_jax.self_collision`): its margin rho_self, m;
+    None: the certificate says nothing about self-collision."""
+    self_skipped: tuple[tuple[str, str, str], ...] = ()
+    """With the self-collision test: the link pairs not checked, and why."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 
@@ -179,12 +201,12 @@ class DatasetResult:
 
     def _leaf(self, row: int) -> Leaf:
         lv = self.leaves
-        c, b = int(lv.capsule[row]), int(lv.box[row])
+        c, b, o = int(lv.capsule[row]), int(lv.box[row]), int(lv.other_capsule[row])
         return Leaf(depth=int(lv.depth[row]), index=int(lv.index[row]), t0=float(lv.t0[row]),
                     t1=float(lv.t1[row]), clearance_m=float(lv.clearance_m[row]),
                     guard_m=float(lv.guard_m[row]), certified=bool(lv.certified[row]),
                     capsule=self.capsule_names[c] if c >= 0 else "", box=self.box_names[b] if b >= 0 else "",
-                    stage=STAGES[int(lv.stage[row])])
+                    other_capsule=self.capsule_names[o] if o >= 0 else "", stage=STAGES[int(lv.stage[row])])
 
     def trajectory(self, i: int) -> TrajectoryResult:
         """The :class:`TrajectoryResult` of trajectory ``i`` (built on demand)."""
@@ -197,7 +219,8 @@ class DatasetResult:
             duration_s=float(self.duration_s[i]), scene=self.scene_names[i], margin_m=self.margin_m,
             max_depth=self.max_depth, guard_m=float(self.guard_m[i]), enclosure=self.enclosure,
             time_offset_s=0.0 if self.time_offset_s is None else float(self.time_offset_s[i]),
-            excluded_links=self.excluded_links,
+            excluded_links=self.excluded_links, tracking_tolerance=self.tracking_tolerance,
+            self_margin_m=self.self_margin_m, self_skipped=self.self_skipped,
         )
 
     @functools.cached_property
@@ -248,6 +271,7 @@ class DatasetResult:
             "blocked_t0": np.where(has, take(lv.t0), np.nan), "blocked_t1": np.where(has, take(lv.t1), np.nan),
             "blocked_capsule": np.where(has, names[take(lv.capsule) + 1], ""),
             "blocked_box": np.where(has, boxes[take(lv.box) + 1], ""),
+            "blocked_other_capsule": np.where(has, names[take(lv.other_capsule) + 1], ""),
         }, columns=list(RESULT_COLUMNS))
 
     def leaves_dataframe(self):
@@ -262,6 +286,6 @@ class DatasetResult:
             "depth": lv.depth.astype(np.int64), "index": lv.index.astype(np.int64),
             "t0": lv.t0, "t1": lv.t1, "clearance_m": lv.clearance_m, "guard_m": lv.guard_m,
             "certified": lv.certified.astype(bool),
-            "capsule": names[lv.capsule + 1], "box": boxes[lv.box + 1],
+            "capsule": names[lv.capsule + 1], "box": boxes[lv.box + 1], "other_capsule": names[lv.other_capsule + 1],
             "stage": np.array(STAGES, dtype=object)[lv.stage.astype(np.int64)] if len(lv) else np.zeros(0, object),
         }, columns=list(LEAF_COLUMNS))

@@ -9,12 +9,14 @@ import contextlib
 from importlib import resources
 from pathlib import Path
 
-__all__ = ["data_path", "PIPER_CAPSULES", "PIPER_ALLOWED_COLLISIONS"]
+__all__ = ["data_path", "PIPER_CAPSULES", "PIPER_ALLOWED_COLLISIONS", "PIPER_SELF_SEPARATION"]
 
 PIPER_CAPSULES = "piper_capsules.yaml"
 """PIPER's capsule file (11 capsules, ``larc fit-capsules``)."""
 PIPER_ALLOWED_COLLISIONS = "piper_allowed_collisions.yaml"
 """PIPER's allowed self-collision pairs (``python -m experiments.self_collision``)."""
+PIPER_SELF_SEPARATION = "piper_self_separation.yaml"
+"""PIPER link pairs proven never to touch (``python -m experiments.self_separation``)."""
 
 _extracted = contextlib.ExitStack()  # files extracted from a zipped install, removed at exit
 atexit.register(_extracted.close)
