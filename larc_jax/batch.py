@@ -27,7 +27,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .cascade import Links, combine, hull_pair_clearance, interval_pairs, select_pairs
+from .cascade import Links, PairDetails, combine, hull_pair_clearance, interval_pairs, select_pairs
 from .clearance import BROAD_PHASE_K
 from .compilation import cached_kernel_call
 from .enclosure.capsule import CapsuleModel
@@ -137,12 +137,14 @@ def _cached_call(kernel, *args):
 
 @jax.jit
 def _interval_pairs(robot, capsules, hulls, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
-    """Step 2 of the cascade (larc_jax.cascade) on F intervals, as ``_evaluate_intervals``."""
+    """Step 2 of the cascade (larc_jax.cascade) on F intervals, as ``_evaluate_intervals``: the
+    fields of :class:`~larc_jax.cascade.PairDetails` as a tuple (what the compilation cache keeps)."""
 
     def one(k, s, ai, bi):
         spline = SplineRow(splines, k)
         bnd = jax.tree.map(lambda x: x[k], bounds)
-        return interval_pairs(robot, capsules, hulls, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
+        d = interval_pairs(robot, capsules, hulls, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
+        return d.g_capsule, d.T_part, d.motion_b, d.g_upper
 
     return jax.vmap(one)(traj, scene, a, b)
 
@@ -347,11 +349,13 @@ class Batch:
         if self.hulls is not None and len(open_):
             tr = traj[open_]
             ar, br = self._rebased(tr, a[open_], b[open_])
-            d = self._bucketed(
-                lambda t, sc, x, y: _call(_interval_pairs, (self.robot, self.capsules, self.hulls, self.splines,
-                                                            self.box_lo, self.box_hi, self.box_mask, self.bounds, t,
-                                                            sc, x, y, self.margin), on_compile),
-                [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS)
+            pairs_call = _interval_pairs if len(self.devices) > 1 else _cached(_interval_pairs)
+            hull_call = _hull_pairs if len(self.devices) > 1 else _cached(_hull_pairs)
+            d = PairDetails(*self._bucketed(
+                lambda t, sc, x, y: _call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
+                                                       self.box_lo, self.box_hi, self.box_mask, self.bounds, t,
+                                                       sc, x, y, self.margin), on_compile),
+                [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
             links = Links.of(self.capsules, self.hulls)
             G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
             G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
@@ -361,7 +365,7 @@ class Batch:
                 i, p, k = triples.T
                 sc = self.scene_of[tr[i]]
                 g_hull = self._bucketed(
-                    lambda pp, T, lo, hi, mb: _call(_hull_pairs, (self.hulls, pp, T, lo, hi, mb, self.margin),
+                    lambda pp, T, lo, hi, mb: _call(hull_call, (self.hulls, pp, T, lo, hi, mb, self.margin),
                                                     on_compile),
                     [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
                     buckets=CASCADE_BUCKETS)
