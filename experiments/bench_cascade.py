@@ -3,8 +3,8 @@
     python -m experiments.bench_cascade [--json results/bench/bench_cascade.json] [--single 30]
 
 Two datasets: the planned trajectories of ``results/tightness`` (next to obstacles, where the
-capsule test fails most; run ``python -m experiments.tightness`` first) and the synthetic window
-set of :mod:`experiments.bench`. For each, three certificate configurations at depth 9, margin
+capsule test fails most; run ``python -m experiments.tightness`` first) and the Stage B
+trajectories with their scenes (:func:`experiments.bench.stageB_dataset`). For each, three certificate configurations at depth 9, margin
 10 mm: ``capsules`` (today's: the capsule test, finger strokes enclosed), ``cascade`` (capsules
 then hulls, finger strokes enclosed: the new default without ``--hold``) and
 ``cascade_stated`` (the cascade with the gripper opening stated, ``--hold joint7=0 --hold
@@ -40,7 +40,7 @@ __all__ = ["main"]
 def _datasets(n_synthetic: int):
     import dataclasses
 
-    from experiments.bench import WINDOW, synthetic_trajectories
+    from experiments.bench import stageB_dataset
     from larc_jax.scene import read_scene
     from larc_jax.trajectory_files import read_trajectory
     from larc_jax.urdf import load_robot
@@ -57,8 +57,8 @@ def _datasets(n_synthetic: int):
         trajs = [dataclasses.replace(read_trajectory(f, robot), id=f"{f.parent.parent.parent.name}_{f.stem}")
                  for f in files]
         out["tightness"] = (trajs, [scenes[f.parent.name] for f in files])
-    trajs = synthetic_trajectories(robot, n_synthetic)
-    out["synthetic_window"] = (trajs, [WINDOW] * len(trajs))
+    trajs, scenes = stageB_dataset(robot)
+    out["stageB"] = (trajs[:n_synthetic], scenes[:n_synthetic])
     return out
 
 
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", help="write the figures as JSON")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--single", type=int, default=30, help="trajectories timed one per call")
-    p.add_argument("--n-synthetic", type=int, default=160)
+    p.add_argument("--n-synthetic", type=int, default=160, help="Stage B trajectories used")
     args = p.parse_args(argv)
     out = {"device": str(jax.devices()[0]), "machine": platform.processor() or platform.machine(),
            "cpu_count": os.cpu_count(), "load_average_start": os.getloadavg(), "datasets": {}}

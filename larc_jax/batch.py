@@ -48,7 +48,7 @@ are certified one at a time: a call costs ~0.1 ms plus ~10 us per padded interva
 so a 3-interval frontier padded to 64 would cost 5x what it needs."""
 
 
-MAX_BATCH_TRAJECTORIES = 8192
+MAX_BATCH_TRAJECTORIES = 1024
 """Trajectories :func:`~larc_jax.certify.certify` prepares into one :class:`Batch` (larger
 datasets run batch after batch): bounds the padded spline and bound arrays, so memory does not
 grow with the dataset."""
