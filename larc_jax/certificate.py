@@ -5,12 +5,14 @@
 
 What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
 
-* ``parameters``: method, margin rho, maximum depth, geometry dtype, links left out.
+* ``parameters``: method, margin rho, maximum depth, geometry dtype, links left out, the
+  enclosure (``capsules`` or the ``hull`` cascade), the tracking tolerance per joint and the
+  self-collision test (its margin and the pairs the user skipped), if any.
 * ``robot``: the robot file (path as given, ``null`` for PIPER's shipped capsule file) and the
   SHA-256 of its bytes, the URDF path and SHA-256, the collision geometry the capsules were
   proven on (every mesh's SHA-256, as :func:`~larc_jax.enclosure.meshes.collision_geometry`
-  computes it from the files now), the active joints, the values of the held joints, the
-  capsule names.
+  computes it from the files now), the active joints, the values of the held joints, which of
+  them the user stated (``--hold``: the gripper opening), the capsule names.
 * ``scenes``: per scene its file and the SHA-256 of its bytes (``null`` when certified through
   the Python API from a :class:`~larc_jax.scene.Scene`), and always ``arrays_sha256``, the
   SHA-256 of the canonical box arrays (:func:`scene_sha256`), and its box names.
@@ -18,17 +20,20 @@ What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
   ``arrays_sha256`` of the canonical waypoint arrays (:func:`trajectory_sha256`), the velocity
   mode it was read with, its scene, the claim ``certified``, the horizon, the rounding-bound
   inputs of :func:`~larc_jax.interval.trajectory_rounding` (offset, tau, speed slack, guard per
-  capsule) and its leaf cover as columns (depth, index, t0, t1, clearance, guard, capsule and
-  box index; -1: no pair).
+  capsule and hull part) and its leaf cover as columns (depth, index, t0, t1, clearance, guard,
+  capsule and box index (-1: no pair), the second capsule of a self pair, the stage that passed
+  it).
 
 Every float is written with :meth:`float.hex` (exact: ``float.fromhex`` gives the same double
 back, ``inf`` and ``nan`` included), so interval ends and clearances are the computed values
 bit for bit. The document is written atomically (temporary file, then ``os.replace``).
 
 A certificate claims: for each trajectory marked ``certified``, at every real time of its
-horizon, every capsule of the robot (placed by the Hermite curve through the recorded
-waypoints) is more than rho from every box of its scene, hence every collision element the
-capsules contain; it assumes the hashed files, the held joint values, and that links named in
+horizon, every link of the robot (placed by the Hermite curve through the recorded waypoints,
+or by any execution within the tracking tolerance) is more than rho from every box of its
+scene (each link proven by its capsules or, with the cascade, its hull parts), and, with the
+self-collision test, no checked pair of links comes within its margin; it assumes the hashed
+files, the held joint values (stated or enclosed over their stroke), and that links named in
 ``excluded_links`` are not checked at all.
 """
 
@@ -45,6 +50,7 @@ from .enclosure.capsule import CapsuleModel
 from .enclosure.meshes import collision_geometry
 from .errors import LarcInputError
 from .interval import trajectory_rounding
+from .leaf_reference import leaf_enclosures
 from .io import atomic_write_text
 from .results import DatasetResult
 from .robot import JointType, Robot
@@ -55,7 +61,7 @@ __all__ = ["CERTIFICATE_FORMAT", "CERTIFICATE_VERSION", "certificate", "write_ce
            "file_sha256", "trajectory_sha256", "scene_sha256", "robot_file_path"]
 
 CERTIFICATE_FORMAT = "larc-certificate"
-CERTIFICATE_VERSION = 1
+CERTIFICATE_VERSION = 2
 
 
 def hexf(x) -> str:
@@ -106,6 +112,9 @@ def _robot_section(robot: Robot, capsules: CapsuleModel, robot_file) -> dict:
         "file": None if robot_file is None else str(robot_file), "sha256": file_sha256(path),
         "urdf": robot.urdf_path, "urdf_sha256": robot.urdf_sha256, "geometry": collision_geometry(robot),
         "active_joints": list(robot.active_joint_names), "held_joints": _held_joints(robot),
+        # Held joints whose value the user stated (--hold): their links are enclosed at it alone.
+        "stated_joints": {robot.joint_names[i]: hexf(robot.q_held[i]) for i in range(robot.n_links)
+                          if robot.joint_names[i] in robot.stated_joints},
         "capsules": list(capsules.names),
     }
 
@@ -119,6 +128,7 @@ def _leaf_columns(result: DatasetResult, i: int, box_offset: int) -> dict:
         "clearance_m": [hexf(x) for x in lv.clearance_m[sl]], "guard_m": [hexf(x) for x in lv.guard_m[sl]],
         "certified": [bool(x) for x in lv.certified[sl]], "capsule": [int(x) for x in lv.capsule[sl]],
         "box": [int(b - box_offset) if b >= 0 else -1 for b in box],
+        "other_capsule": [int(x) for x in lv.other_capsule[sl]], "stage": [int(x) for x in lv.stage[sl]],
     }
 
 
@@ -153,10 +163,12 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
     tfiles = list(trajectory_files) if trajectory_files is not None else [None] * len(trajectories)
     if len(tfiles) != len(trajectories):
         raise LarcInputError(f"certificate: {len(trajectories)} trajectories but {len(tfiles)} trajectory files")
+    delta = None if not result.tracking_tolerance else np.array([x for _, x in result.tracking_tolerance])
+    enc = leaf_enclosures(robot, capsules, result.enclosure, delta)
     traj_docs = []
     for i, (traj, scene, f) in enumerate(zip(trajectories, per_traj, tfiles)):
         s = unique.index(id(scene))
-        bnd = trajectory_rounding(traj, robot, capsules, result.dtype)
+        bnd = trajectory_rounding(traj, robot, enc.capsules, result.dtype, enc.hulls)
         traj_docs.append({
             "id": traj.id, "file": None if f is None else str(f), "sha256": None if f is None else file_sha256(f),
             "arrays_sha256": trajectory_sha256(traj), "velocities": velocities, "scene": s,
@@ -164,13 +176,19 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
             "t_start": hexf(traj.t[0]), "t_end": hexf(traj.t[-1]),
             "rounding": {"offset_s": hexf(bnd.offset_s), "tau_s": hexf(bnd.tau_s),
                          "omega_slack": [hexf(x) for x in np.asarray(bnd.omega_slack)],
-                         "guard_m": [hexf(x) for x in np.asarray(bnd.guard_m)]},
+                         "guard_m": [hexf(x) for x in np.asarray(bnd.guard_m)],
+                         "hull_guard_m": [hexf(x) for x in np.asarray(bnd.hull_guard_m)]},
             "leaves": _leaf_columns(result, i, int(offsets[s])),
         })
     return {
         "format": CERTIFICATE_FORMAT, "version": CERTIFICATE_VERSION, "float_encoding": "float.hex",
         "parameters": {"method": result.method, "margin_m": hexf(result.margin_m), "max_depth": int(result.max_depth),
-                       "dtype": result.dtype, "excluded_links": list(result.excluded_links)},
+                       "dtype": result.dtype, "excluded_links": list(result.excluded_links),
+                       "enclosure": result.enclosure,
+                       "tracking_tolerance": {j: hexf(x) for j, x in result.tracking_tolerance} or None,
+                       "self_collision": None if result.self_margin_m is None else {
+                           "margin_m": hexf(result.self_margin_m),
+                           "skip": [f"{a}:{b}" for a, b, why in result.self_skipped if why == "skipped"]}},
         "robot": _robot_section(robot, capsules, robot_file),
         "scenes": scene_docs,
         "trajectories": traj_docs,

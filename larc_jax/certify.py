@@ -23,28 +23,27 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-import math
 import time
 from typing import Callable, Sequence
 
 import numpy as np
 
 from .batch import MAX_BATCH_TRAJECTORIES, Batch, dyadic_ends, prepare
-from .cascade import Links, cascade_np
 from .compilation import CompileClock
 from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS,
                        check_depth, check_enclosure, check_margin)
 from .enclosure.capsule import CapsuleModel
-from .enclosure.hull import HullModel, hull_model
+from .enclosure.hull import HullModel
 from .enclosure.meshes import held_joint_states
 from .errors import LarcInputError
 from .io import short_repr
-from .interval import evaluate_interval_np, geometry_dtype, trajectory_rounding
+from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np
+from .interval import geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
 from .scene import Scene
-from .self_collision import SelfPairs, curve_ranges, load_separation, self_clearance_np, self_pairs
-from .tracking import check_tracking_tolerance, tracked_capsules
+from .self_collision import SelfPairs, curve_ranges, load_separation, self_pairs
+from .tracking import check_tracking_tolerance
 from .trajectory import Trajectory, validate_trajectory
 
 __all__ = [
@@ -137,38 +136,18 @@ def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, pro
                                                         stage, other)])
 
 
-def _reference(trajectories, scenes, names: _Names, robot, capsules, hulls, margin, max_depth, bounds, progress,
+def _reference(trajectories, scenes, names: _Names, robot, enc: LeafEnclosures, margin, max_depth, bounds, progress,
                pairs: SelfPairs | None = None, skips=None):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
     rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, stage, other)
-    links = Links.of(capsules, hulls) if hulls is not None else None
     for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
         ts, te = float(traj.t[0]), float(traj.t[-1])
 
         def certify_node(d: int, i: int) -> bool:  # Algorithm 1
             a, b = (float(x) for x in dyadic_ends(ts, te, d, i))
             frontier[k, d] += 1
-            ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bnd)
-            g, guard, cap, box, stage, other = ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard), -1
-            self_ok = True
-            if pairs is not None:
-                # The self test on the capsule stage's placement (larc_jax.self_collision): the
-                # leaf passes iff both pass, and records the worse of the two.
-                gs, gds, c1, c2 = self_clearance_np(ev.p_world_a, ev.p_world_b, np.asarray(capsules.radius, np.float64),
-                                                   ev.h_cov, ev.omega_max + bnd.omega_slack, bnd.guard_m, pairs,
-                                                   skips[k])
-                if math.isnan(ev.g):
-                    gs = math.nan
-                self_ok = gs > gds
-            if links is not None and self_ok and not stage and not math.isnan(ev.g):
-                # The hull stage, as the batched schedulers run it: only where the capsules fail a
-                # box and the self test passes.
-                g, guard, cap, box, stage = cascade_np(robot, capsules, hulls, links, traj, scene, a, b, margin, bnd)
-            if pairs is not None:
-                if gs - gds < g - guard or math.isnan(gs):
-                    g, guard, cap, box, other = gs, gds, c1, 0, c2
-                if not self_ok:
-                    stage = 0
+            g, guard, cap, box, other, stage = leaf_test_np(robot, enc, traj, scene, a, b, margin, bnd, pairs,
+                                                            None if skips is None else skips[k])
             if progress:
                 progress(1)
             passed = stage > 0
@@ -305,14 +284,8 @@ def certify(
     if check_pairs is not None:  # pairs proven apart where each trajectory's curve goes
         skips = [check_pairs.skip_mask(*curve_ranges(t, delta)) for t in trajectories]
     check_enclosure(enclosure, "certify: enclosure")
-    if enclosure == "hull":
-        hulls = hulls if hulls is not None else hull_model(robot, capsules.hull_parts, capsules.padding_m)
-        hulls = hulls.on_links(capsules.link_names)  # links a capsule model excludes are excluded here too
-        Links.of(capsules, hulls)  # the same links, or a clear error
-        hulls = tracked_capsules(hulls, delta)  # the parts' radii grow as the capsules' do
-    else:
-        hulls = None
-    planned_capsules, capsules = capsules, tracked_capsules(capsules, delta)  # radii grown by sum_j a_lj delta_j
+    enc = leaf_enclosures(robot, capsules, enclosure, delta, hulls)  # radii grown by sum_j a_lj delta_j
+    planned_capsules, capsules, hulls = capsules, enc.capsules, enc.hulls
     start = time.perf_counter()
     names = _Names(scenes)
     if method == Method.REFERENCE:
@@ -320,8 +293,8 @@ def certify(
     bounds = [trajectory_rounding(t, robot, capsules, dtype, hulls) for t in trajectories]
     with CompileClock() as clock:
         if method == Method.REFERENCE:
-            frontier, leaves = _reference(trajectories, scenes, names, robot, capsules, hulls, margin, max_depth,
-                                          bounds, progress, check_pairs, skips)
+            frontier, leaves = _reference(trajectories, scenes, names, robot, enc, margin, max_depth, bounds,
+                                          progress, check_pairs, skips)
         else:
             # Trajectories are prepared (padded into device arrays) MAX_BATCH_TRAJECTORIES at a
             # time, so memory does not grow with the dataset; each interval's result does not

@@ -2,7 +2,9 @@
 
 :func:`verify_certificate` re-reads the robot file, scenes and trajectories a certificate
 (:mod:`larc_jax.certificate`) names (or the files given instead), and re-checks the claim with
-the NumPy references only (:func:`~larc_jax.interval.evaluate_interval_np` and what it calls):
+the NumPy references only (:func:`~larc_jax.leaf_reference.leaf_test_np`: the capsule test, the
+hull cascade, the self test, with the tracking tolerance, as the run was asked; and what they
+call):
 
 1. Hashes: the robot file's bytes, the URDF, every collision mesh (the robot loader also refuses
    a mesh that differs from the one the capsules were fitted to), the scene and trajectory files
@@ -11,8 +13,9 @@ the NumPy references only (:func:`~larc_jax.interval.evaluate_interval_np` and w
    piece ``(depth, index)`` of the horizon (:func:`~larc_jax.interval.dyadic_ends`, exact), the
    first starts at ``t_0``, each ends where the next starts, the last ends at ``t_K``.
 3. The test: for every such leaf, ``g`` and the guard are recomputed from the files with the
-   float64 reference and its own rounding bounds (stored clearances are not trusted): the leaf
-   must pass, ``g > guard``. The stored clearance must agree with the recomputed one within
+   float64 reference and its own rounding bounds (stored clearances are not trusted), with the
+   enclosures, gripper state (stated joints), tracking tolerance and self-collision pairs the
+   certificate records: the leaf must pass, ``g > guard``. The stored clearance must agree with the recomputed one within
    ``CLEARANCE_TOL_M + 4 (stored guard + recomputed guard)`` (the JAX kernel and the reference
    round differently; both are within their guards of the exact value), and the stored
    rounding inputs with the recomputed ones to a relative ``1e-9``.
@@ -40,13 +43,16 @@ import numpy as np  # noqa: E402
 
 from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_path, scene_sha256,  # noqa: E402
                           trajectory_sha256, unhexf)
-from .defaults import check_depth, check_margin  # noqa: E402
+from .defaults import check_depth, check_enclosure, check_margin  # noqa: E402
 from .enclosure.meshes import collision_geometry  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
 from .errors import GeometryChanged, LarcInputError  # noqa: E402
-from .interval import dyadic_ends, evaluate_interval_np, trajectory_rounding  # noqa: E402
+from .interval import dyadic_ends, trajectory_rounding  # noqa: E402
 from .io import read_input_text  # noqa: E402
+from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np  # noqa: E402
 from .scene import read_scene  # noqa: E402
+from .self_collision import curve_ranges, load_separation, self_pairs  # noqa: E402
+from .tracking import check_tracking_tolerance  # noqa: E402
 from .trajectory_files import read_trajectory  # noqa: E402
 from .urdf import file_sha256  # noqa: E402
 
@@ -131,8 +137,10 @@ def _load_robot(doc: dict, robot_path, excluded: list[str]):
     if not file.is_file():
         raise LarcInputError(f"{file}: robot file not found")
     _check_hash(_sha256(file, "robot file"), _get(doc, "sha256", where, str), f"robot file {file}")
+    stated = {str(j): _float(v, f"{where}.stated_joints.{j}")
+              for j, v in (_get(doc, "stated_joints", where, dict) or {}).items()}
     try:
-        robot, capsules = load_robot_file(path)
+        robot, capsules = load_robot_file(path, hold=stated, active_joints=_get(doc, "active_joints", where, list))
     except GeometryChanged as exc:
         raise Refuted(f"robot: {exc}") from None
     _check_hash(robot.urdf_sha256, _get(doc, "urdf_sha256", where, str), f"URDF {robot.urdf_path}")
@@ -181,7 +189,7 @@ def _check_tiling(tid: str, t_start: float, t_end: float, depth, index, t0, t1) 
 
 
 def _check_rounding(tid: str, doc: dict, bnd, where: str) -> None:
-    for key in ("offset_s", "tau_s", "omega_slack", "guard_m"):
+    for key in ("offset_s", "tau_s", "omega_slack", "guard_m", "hull_guard_m"):
         stored = _floats(doc, key, where) if isinstance(doc.get(key), list) else np.array([_float(_get(doc, key, where),
                                                                                                  f"{where}.{key}")])
         have = np.atleast_1d(np.asarray(getattr(bnd, key), np.float64))
@@ -190,7 +198,8 @@ def _check_rounding(tid: str, doc: dict, bnd, where: str) -> None:
                           f"{have.tolist()}")
 
 
-def _check_trajectory(doc: dict, k: int, traj, scene, robot, capsules, margin: float, dtype: str, max_depth: int):
+def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures, margin: float, dtype: str,
+                      max_depth: int, pairs=None, delta=None):
     """Re-check one trajectory claimed certified; returns (leaves, max clearance diff, min excess)."""
     where = f"trajectories[{k}]"
     tid = str(_get(doc, "id", where))
@@ -198,8 +207,9 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, capsules, margin: f
     if _float(_get(doc, "t_start", where), f"{where}.t_start") != t_start or \
             _float(_get(doc, "t_end", where), f"{where}.t_end") != t_end:
         raise Refuted(f"trajectory '{tid}': the recorded horizon differs from the trajectory's [{t_start!r}, {t_end!r}]")
-    _check_rounding(tid, _get(doc, "rounding", where, dict), trajectory_rounding(traj, robot, capsules, dtype),
-                    f"{where}.rounding")
+    capsules = enc.capsules
+    _check_rounding(tid, _get(doc, "rounding", where, dict),
+                    trajectory_rounding(traj, robot, capsules, dtype, enc.hulls), f"{where}.rounding")
     lv = _get(doc, "leaves", where, dict)
     lw = f"{where}.leaves"
     depth, index, capsule = _ints(lv, "depth", lw), _ints(lv, "index", lw), _ints(lv, "capsule", lw)
@@ -211,17 +221,21 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, capsules, margin: f
     if np.any(depth < 0) or np.any(depth > max_depth):
         raise Refuted(f"trajectory '{tid}': a leaf depth is outside 0..{max_depth}")
     _check_tiling(tid, t_start, t_end, depth, index, t0, t1)
-    bounds = trajectory_rounding(traj, robot, capsules)  # the float64 reference's own guard
+    bounds = trajectory_rounding(traj, robot, capsules, np.float64, enc.hulls)  # the float64 reference's own guard
+    skip = pairs.skip_mask(*curve_ranges(traj, delta)) if pairs is not None else None
     diff, excess = 0.0, math.inf
     for j in range(len(t0)):
         leaf = f"trajectory '{tid}' leaf {j} (t=[{t0[j]!r}, {t1[j]!r}], depth {depth[j]})"
         if flags[j] is not True:
             raise Refuted(f"{leaf}: marked not certified in a trajectory claimed certified")
-        ev = evaluate_interval_np(robot, capsules, traj, scene, t0[j], t1[j], margin, bounds)
-        g, guard = float(ev.g), float(ev.guard)
-        if not g > guard:  # NaN fails
+        g, guard, cap, box, other, stage = leaf_test_np(robot, enc, traj, scene, t0[j], t1[j], margin, bounds, pairs,
+                                                        skip)
+        g, guard = float(g), float(guard)
+        if not (stage > 0 and g > guard):  # NaN fails
+            pair = f"capsules {capsules.names[cap]} / {capsules.names[other]}" if other >= 0 else \
+                f"capsule {capsules.names[cap]}, box {box}"
             raise Refuted(f"{leaf}: fails the reference test: clearance {g!r} m is not above the guard {guard!r} m "
-                          f"(capsule {capsules.names[ev.capsule]}, box {ev.box})")
+                          f"({pair})")
         tol = CLEARANCE_TOL_M + 4 * (abs(guard_stored[j]) + abs(guard))
         d = abs(g_stored[j] - g) if math.isfinite(g) else (0.0 if g == g_stored[j] else math.inf)
         if not d <= tol:
@@ -253,6 +267,20 @@ def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> V
         raise LarcInputError(f"{source}: parameters.dtype {dtype!r} is not float64 or float32")
     rob, capsules = _load_robot(_get(doc, "robot", source, dict), robot,
                                 list(_get(params, "excluded_links", "parameters", list)))
+    enclosure = _get(params, "enclosure", "parameters", str)
+    check_enclosure(enclosure, "parameters.enclosure")
+    tol = params.get("tracking_tolerance")
+    delta = None if tol is None else check_tracking_tolerance(
+        {str(j): _float(v, f"parameters.tracking_tolerance.{j}") for j, v in dict(tol).items()}, rob,
+        "parameters.tracking_tolerance")
+    enc = leaf_enclosures(rob, capsules, enclosure, delta)
+    sc = params.get("self_collision")
+    pairs = None
+    if sc is not None:
+        pairs = self_pairs(rob, capsules, _float(_get(sc, "margin_m", "parameters.self_collision"),
+                                                  "parameters.self_collision.margin_m"),
+                           list(_get(sc, "skip", "parameters.self_collision", list)), proven=load_separation(rob))
+        pairs = pairs if pairs.n_pairs else None
     scene_docs = _get(doc, "scenes", source, list)
     loaded_scenes = _load_scenes(scene_docs, _override(scenes, len(scene_docs), "--scene"), rob)
     traj_docs = _get(doc, "trajectories", source, list)
@@ -275,7 +303,7 @@ def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> V
         s = _get(tdoc, "scene", where, int)
         if not 0 <= s < len(loaded_scenes):
             raise LarcInputError(f"{where}.scene: {s} is not a scene index (0..{len(loaded_scenes) - 1})")
-        nl, d, e = _check_trajectory(tdoc, k, traj, loaded_scenes[s], rob, capsules, margin, dtype, max_depth)
+        nl, d, e = _check_trajectory(tdoc, k, traj, loaded_scenes[s], rob, enc, margin, dtype, max_depth, pairs, delta)
         checked, n_leaves, diff, excess = checked + 1, n_leaves + nl, max(diff, d), min(excess, e)
     return VerifyReport(trajectories=len(traj_docs), checked=checked, leaves=n_leaves, max_clearance_diff_m=diff,
                         min_excess_m=excess)

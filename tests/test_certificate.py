@@ -112,7 +112,7 @@ def _set_leaf(key, k, f):
     ("time shifted by one ulp", _set_leaf("t0", 1, lambda s: hexf(np.nextafter(unhexf(s), 0.0))), "dyadic piece"),
     ("depth edited", _set_leaf("depth", 0, lambda d: d + 1), "dyadic piece"),
     ("guard input edited", lambda doc: doc["trajectories"][0]["rounding"].update(tau_s=hexf(0.0)), "rounding input"),
-    ("margin raised", lambda doc: doc["parameters"].update(margin_m=hexf(0.05)), "differs from the recomputed"),
+    ("margin raised", lambda doc: doc["parameters"].update(margin_m=hexf(0.0105)), "differs from the recomputed"),
     ("margin raised a lot", lambda doc: doc["parameters"].update(margin_m=hexf(0.5)), "fails the reference test"),
     ("false claim", lambda doc: doc["trajectories"][1].update(certified=True), "sweep_front"),
     ("mesh hash edited", lambda doc: doc["robot"]["geometry"]["link6"][0].update(sha256="0" * 64), "collision geometry"),
@@ -202,7 +202,7 @@ def test_changed_mesh_on_disk_is_refuted(tmp_path, capsys):
     ("{not json", "not JSON"),
     ('{"format": "something"}', "not a larc certificate"),
     ('{"format": "larc-certificate", "version": 99}', "unknown certificate version 99"),
-    ('{"format": "larc-certificate", "version": 1}', "missing field 'parameters'"),
+    ('{"format": "larc-certificate", "version": 2}', "missing field 'parameters'"),
 ])
 def test_bad_input_exits_2(tmp_path, capsys, content, why):
     path = tmp_path / "c.json"
@@ -269,3 +269,47 @@ def test_deferred_jax_registers_the_pytrees_when_jax_is_used():
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# What the run assumed: the hull cascade, the gripper state, tracking tolerance, self-collision
+# ----------------------------------------------------------------------------------------------
+
+
+def test_hull_leaves_are_rechecked_with_the_cascade(cli_cert, tmp_path, capsys):
+    """The default certificate (the cascade) has leaves only the hull stage passes: the checker
+    re-runs the cascade's reference on them, and an edited hull-leaf clearance is refuted."""
+    path, doc = cli_cert
+    stages = doc["trajectories"][0]["leaves"]["stage"]
+    assert doc["parameters"]["enclosure"] == "hull" and 2 in stages, stages
+    j = stages.index(2)
+    assert _verify(_edited(tmp_path, doc, _set_leaf("clearance_m", j, lambda s: hexf(unhexf(s) + 1e-4)))) == \
+        EXIT_REFUTED
+    assert f"leaf {j} " in capsys.readouterr().err
+    # The same certificate claimed with the capsule test alone does not hold (its hull guards and
+    # that leaf disagree with the capsule test).
+    assert _verify(_edited(tmp_path, doc, lambda d: d["parameters"].update(enclosure="capsules"))) == EXIT_REFUTED
+
+
+def test_stated_gripper_tolerance_and_self_collision_are_rechecked(tmp_path, capsys):
+    """--hold, --tracking-tolerance and --self-collision are recorded and re-checked: the
+    certificate verifies, and claiming a looser assumption (the opening, a smaller tolerance, a
+    larger self margin) is refuted or rejected."""
+    path = tmp_path / "c.json"
+    rc = main(["certify", REACH, "--scene", CELL, "--max-depth", DEPTH, "--hold", "joint7=0", "--hold", "joint8=0",
+               "--tracking-tolerance", "0.002", "--self-collision", "--certificate", str(path), "-q"])
+    assert rc == EXIT_OK
+    doc = json.loads(path.read_text())
+    assert set(doc["robot"]["stated_joints"]) == {"joint7", "joint8"}
+    assert doc["parameters"]["tracking_tolerance"] and doc["parameters"]["self_collision"] is not None
+    assert _verify(path) == EXIT_OK
+    capsys.readouterr()
+    edits = [
+        lambda d: d["robot"]["stated_joints"].update(joint7=hexf(-0.038)),  # another opening
+        lambda d: d["parameters"].update(tracking_tolerance={j: hexf(0.0) for j in d["parameters"]["tracking_tolerance"]}),
+        lambda d: d["parameters"]["self_collision"].update(margin_m=hexf(0.5)),
+    ]
+    for edit in edits:
+        rc = _verify(_edited(tmp_path, doc, edit))
+        err = capsys.readouterr().err
+        assert rc in (EXIT_REFUTED, EXIT_BAD_INPUT) and "Traceback" not in err, err

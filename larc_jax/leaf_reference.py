@@ -1,0 +1,89 @@
+"""The whole leaf test in NumPy float64: what the reference scheduler and ``larc verify`` run.
+
+A certificate's leaf passes when every test the run asked for passes on it:
+
+1. the capsule test (:func:`~larc_jax.interval.evaluate_interval_np`, paper eqs. 4-7);
+2. with ``enclosure="hull"``, where the capsules fail a box, the convex-hull test of the link
+   parts (:func:`~larc_jax.cascade.cascade_np`) — tried only where the self test passes, as the
+   batched schedulers do;
+3. with the self-collision test, every checked capsule pair
+   (:func:`~larc_jax.self_collision.self_clearance_np`);
+
+all with the enclosures grown by the tracking tolerance (:func:`~larc_jax.tracking.tracked_capsules`,
+hull parts alike). The leaf records the ``(g, guard)`` of the worst test: it passed iff ``g > guard``.
+
+:func:`leaf_enclosures` builds the enclosures a run uses from its parameters, so that
+:func:`~larc_jax.certify.certify` and the checker (:mod:`larc_jax.verify`) build the same ones.
+Nothing here imports JAX (the modules it calls reach it through :mod:`larc_jax.lazy_jax`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .cascade import Links, cascade_np
+from .enclosure.capsule import CapsuleModel
+from .enclosure.hull import HullModel, hull_model
+from .interval import evaluate_interval_np
+from .robot import Robot
+from .self_collision import SelfPairs, self_clearance_np
+from .tracking import tracked_capsules
+
+__all__ = ["LeafEnclosures", "leaf_enclosures", "leaf_test_np"]
+
+
+@dataclasses.dataclass(frozen=True)
+class LeafEnclosures:
+    """The enclosures one run tests with."""
+
+    capsules: CapsuleModel
+    """The capsules, radii grown by the tracking tolerance."""
+    hulls: HullModel | None
+    """The hull parts of the cascade (grown alike), or None for the capsule test alone."""
+    links: Links | None
+    """Which link each capsule and part belongs to (with ``hulls``)."""
+
+
+def leaf_enclosures(robot: Robot, capsules: CapsuleModel, enclosure: str, delta=None,
+                    hulls: HullModel | None = None) -> LeafEnclosures:
+    """The enclosures of a run: ``capsules`` as given to certify (planned), ``enclosure``
+    ``"capsules"`` or ``"hull"``, ``delta`` the tracking tolerance per active joint (or None),
+    ``hulls`` the hull parts if given (else built from the robot file's ``hull_parts``)."""
+    if enclosure == "hull":
+        hulls = hulls if hulls is not None else hull_model(robot, capsules.hull_parts, capsules.padding_m)
+        hulls = hulls.on_links(capsules.link_names)  # links a capsule model excludes are excluded here too
+        links = Links.of(capsules, hulls)  # the same links, or a clear error
+        hulls = tracked_capsules(hulls, delta)  # the parts' radii grow as the capsules' do
+    else:
+        hulls, links = None, None
+    return LeafEnclosures(capsules=tracked_capsules(capsules, delta), hulls=hulls, links=links)
+
+
+def leaf_test_np(robot: Robot, enc: LeafEnclosures, traj, scene, t0: float, t1: float, margin: float, bounds,
+                 pairs: SelfPairs | None = None, skip=None):
+    """The leaf ``[t0, t1]`` (the trajectory's own time axis): ``(g, guard, capsule, box, other,
+    stage)``; ``other`` the second capsule of a recorded self pair (-1: a box pair), ``stage`` 1
+    (capsule test), 2 (hull test) or 0 (not passed)."""
+    capsules = enc.capsules
+    ev = evaluate_interval_np(robot, capsules, traj, scene, t0, t1, margin, bounds)
+    g, guard, cap, box, stage, other = ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard), -1
+    self_ok = True
+    if pairs is not None:
+        gs, gds, c1, c2 = self_clearance_np(ev.p_world_a, ev.p_world_b, np.asarray(capsules.radius, np.float64),
+                                           ev.h_cov, ev.omega_max + np.asarray(bounds.omega_slack), bounds.guard_m,
+                                           pairs, skip)
+        if math.isnan(ev.g):
+            gs = math.nan  # non-finite geometry
+        self_ok = gs > gds
+    if enc.links is not None and self_ok and not stage and not math.isnan(ev.g):
+        g, guard, cap, box, stage = cascade_np(robot, capsules, enc.hulls, enc.links, traj, scene, t0, t1, margin,
+                                               bounds)
+    if pairs is not None:
+        if gs - gds < g - guard or math.isnan(gs):
+            g, guard, cap, box, other = gs, gds, c1, 0, c2
+        if not self_ok:
+            stage = 0
+    return g, guard, cap, box, other, stage
