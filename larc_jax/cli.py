@@ -567,7 +567,7 @@ class _ArgumentParser(argparse.ArgumentParser):
         raise _UsageError(f"{message} (see `{self.prog} --help`)")
 
 
-def _gripper_options(p: argparse.ArgumentParser) -> None:
+def _gripper_options(p: argparse.ArgumentParser, explain: bool = False) -> None:
     p.add_argument("--hold", action="append", metavar="JOINT=VALUE",
                    help="state the value of a held joint, e.g. the gripper fingers: --hold joint7=0 --hold "
                         "joint8=0 (repeatable). Without it a held finger may be anywhere in its stroke, which "
@@ -575,9 +575,13 @@ def _gripper_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joints", metavar="J1,J2,...",
                    help="the joints the trajectories carry, if not the robot file's: e.g. add the fingers "
                         "(joint1,...,joint6,joint7,joint8) to certify a trajectory that moves the gripper")
-    p.add_argument("--enclosure", default=DEFAULT_ENCLOSURE, choices=ENCLOSURES,
-                   help="hull (default): capsule test, then the convex-hull test on the intervals it leaves "
-                        "open; capsules: the capsule test alone (the paper's model)")
+    if explain:  # the picture shows capsules: explain the capsule test
+        p.add_argument("--enclosure", default="capsules", choices=("capsules",),
+                       help="capsules (the picture draws the capsule test's placed, inflated capsules)")
+    else:
+        p.add_argument("--enclosure", default=DEFAULT_ENCLOSURE, choices=ENCLOSURES,
+                       help="hull (default): capsule test, then the convex-hull test on the intervals it leaves "
+                            "open; capsules: the capsule test alone (the paper's model)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -700,7 +704,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--scene", required=True, help="scene file (as for certify)")
     e.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
     e.add_argument("--ignore-link", action="append", metavar="LINK", help="as for certify")
-    _gripper_options(e)
+    _gripper_options(e, explain=True)
     e.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
                    help="as for certify")
     e.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,

@@ -65,3 +65,19 @@ def capsules(robot):
     from larc_jax.enclosure import default_capsule_path, load_capsules
 
     return load_capsules(default_capsule_path(), robot)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_kernels():
+    """Drop JAX's in-memory executables after each test module: every compiled CPU executable
+    holds memory mappings, and one long pytest process compiling hundreds of kernel shapes
+    (interval, broad phase, cascade, self test, per bucket) can reach the kernel's
+    vm.max_map_count (65530), where XLA aborts. Later modules reload from the persistent
+    compilation cache the tests share."""
+    yield
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()

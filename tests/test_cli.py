@@ -199,7 +199,7 @@ def test_internal_error_is_exit_3_not_1(capsys, monkeypatch):
 @pytest.mark.slow
 def test_table_is_aligned(capsys):
     rc, out, _ = larc(capsys, "certify", OK, BLOCKED, "--scene", CELL)
-    head, ok, blocked, summary = out.splitlines()
+    head, ok, blocked, summary, *assumptions = out.splitlines()
     end = head.index("evals") + len("evals")
     assert ok[end - 1].isdigit() and blocked[end - 1].isdigit()  # evaluations right-aligned
     assert ok[end] == " " and blocked[end] == " "
@@ -207,7 +207,8 @@ def test_table_is_aligned(capsys):
     assert ok[:g_end].endswith(" mm") and blocked[:g_end].endswith(" mm")
     assert ok.split()[:2] == ["reach_left", "CERTIFIED"] and blocked.split()[:2] == ["sweep_front", "UNCERTIFIED"]
     assert "t=[" in blocked and "/ post" in blocked and "t=[" not in ok
-    assert summary.startswith("1 of 2 certified (larc, margin 10 mm")
+    assert summary.startswith("1 of 2 certified (larc, capsules then hulls, margin 10 mm")
+    assert assumptions and assumptions[0].startswith("gripper:")
 
 
 @pytest.mark.parametrize("where", ["before", "after"])
@@ -261,7 +262,7 @@ def test_explain_writes_png_of_the_blocking_interval(tmp_path, capsys):
     rc, out, err = larc(capsys, "explain", BLOCKED, "--scene", CELL, "-o", tmp_path / "why.png")
     assert rc == 0, err
     assert (tmp_path / "why.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    rc2, table, _ = larc(capsys, "certify", BLOCKED, "--scene", CELL)
+    rc2, table, _ = larc(capsys, "certify", BLOCKED, "--scene", CELL, "--enclosure", "capsules")  # as explain
     blocked = table.splitlines()[1].split("t=")[1]  # "[a, b] s  capsule / box", as certify names it
     assert "UNCERTIFIED" in out and "first inconclusive" in out
     assert "t=" + blocked.split(" s ")[0] in out and "box post" in out
@@ -287,7 +288,7 @@ def test_explain_recomputes_the_interval_test(robot, capsules):
     scene = lj.read_scene(CELL)
     for path in (OK, BLOCKED):
         traj = lj.read_trajectory(path, robot)
-        result = lj.certify([traj], scene, robot, capsules, margin=0.01)[0]
+        result = lj.certify([traj], scene, robot, capsules, margin=0.01, enclosure="capsules")[0]  # as larc explain
         for which in ("first", "worst"):
             leaf = choose_leaf(result, which)
             ex = explain(robot, capsules, traj, scene, result, leaf=leaf)
