@@ -188,8 +188,8 @@ SHARDED = textwrap.dedent("""
     rng = np.random.default_rng(3)
     trajs = [random_trajectory(rng, robot, k) for k in range(30)]
     scenes = [random_scene(rng, k) for k in range(30)]
-    two = lj.certify(trajs, scenes, robot, caps, devices=jax.devices())
-    one = lj.certify(trajs, scenes, robot, caps, devices=jax.devices()[:1])
+    two = lj.certify(trajs, scenes, robot, caps, devices=jax.devices(), enclosure="capsules")
+    one = lj.certify(trajs, scenes, robot, caps, devices=jax.devices()[:1], enclosure="capsules")
     same_results(two, one)
     assert 0 < sum(two.certified) < 30
     print("ok", sum(two.certified))

@@ -74,20 +74,22 @@ def _same(r1, r2):
 
 @pytest.mark.slow
 def test_zero_tolerance_is_the_plain_certificate_and_larger_never_certifies_more(dataset, robot, capsules):
-    plain = certify(*dataset, robot, capsules, margin=MARGIN)
-    zero = certify(*dataset, robot, capsules, margin=MARGIN, tracking_tolerance=0.0)
+    plain = certify(*dataset, robot, capsules, margin=MARGIN, enclosure="capsules")
+    zero = certify(*dataset, robot, capsules, margin=MARGIN, tracking_tolerance=0.0, enclosure="capsules")
     _same(plain, zero)
     assert zero.tracking_tolerance == tuple((j, 0.0) for j in robot.active_joint_names)
     assert plain.tracking_tolerance == ()
     prev = plain
     for delta in (0.002, 0.01, 0.05):
-        res = certify(*dataset, robot, capsules, margin=MARGIN, tracking_tolerance=delta)
+        res = certify(*dataset, robot, capsules, margin=MARGIN, tracking_tolerance=delta, enclosure="capsules")
         assert not np.any(res.certified & ~prev.certified)
         prev = res
     assert prev.certified.sum() < plain.certified.sum()  # the tolerance costs something here
     # On the same intervals (fixed depth), every leaf's clearance shrinks as the tolerance grows.
-    small = certify(*dataset, robot, capsules, margin=MARGIN, method="coarse", tracking_tolerance=0.002)
-    large = certify(*dataset, robot, capsules, margin=MARGIN, method="coarse", tracking_tolerance=0.01)
+    small = certify(*dataset, robot, capsules, margin=MARGIN, method="coarse", tracking_tolerance=0.002,
+                    enclosure="capsules")
+    large = certify(*dataset, robot, capsules, margin=MARGIN, method="coarse", tracking_tolerance=0.01,
+                    enclosure="capsules")  # recorded clearances compare within one enclosure
     np.testing.assert_array_equal(small.leaves.t0, large.leaves.t0)
     ok = np.isfinite(small.leaves.clearance_m)
     assert np.all(large.leaves.clearance_m[ok] < small.leaves.clearance_m[ok])
