@@ -238,17 +238,16 @@ def _cmd_fit_capsules(args) -> int:
 
 
 def _cmd_verify_capsules(args) -> int:
-    from .enclosure import verify_containment
-    from .enclosure.robot_file import default_capsule_path, load_robot_file
+    from .enclosure.proof import prove_robot_file
+    from .enclosure.robot_file import default_capsule_path
 
     source = str(args.robot or default_capsule_path())
-    robot, capsules = load_robot_file(args.robot)  # checks the URDF and geometry hashes, coverage
     with _progress_bar(args, desc="verifying containment", unit=" links") as bar:
-        checked = verify_containment(robot, capsules, source=source, progress=lambda link: bar.update(1))
+        p = prove_robot_file(args.robot, progress=lambda link: bar.update(1))  # loading checks hashes, coverage
     if not args.quiet:
-        print(f"{source}: containment proven for {sum(checked.values())} collision elements of "
-              f"{len(checked)} links in {capsules.n_capsules} capsules (padding {capsules.padding_m * 1000:g} mm); "
-              f"URDF and collision geometry match the fit")
+        print(f"{source}: containment proven for {p.elements} collision elements of {p.links} links in "
+              f"{p.capsules} capsules, {p.stated_capsules} stated-finger capsules and {p.hull_parts} hull parts "
+              f"(padding {p.padding_m * 1000:g} mm; {p.seconds:.1f} s); URDF and collision geometry match the fit")
     return EXIT_OK
 
 

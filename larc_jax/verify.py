@@ -9,6 +9,11 @@ call):
 1. Hashes: the robot file's bytes, the URDF, every collision mesh (the robot loader also refuses
    a mesh that differs from the one the capsules were fitted to), the scene and trajectory files
    (when the certificate names files) and always their canonical arrays.
+1b. Enclosures: every enclosure the leaf test will use (capsules, stated-finger capsules, the
+   hull parts of the cascade) is proven to contain its link's collision geometry
+   (:func:`~larc_jax.enclosure.proof.prove_enclosures`: the hashed meshes and primitives, finger
+   strokes from the URDF); the robot file's numbers are not trusted. Motion constants, strokes
+   and rounding guards are derived from the URDF, never read.
 2. Tiling: the leaves of every trajectory claimed certified are in time order, each the dyadic
    piece ``(depth, index)`` of the horizon (:func:`~larc_jax.interval.dyadic_ends`, exact), the
    first starts at ``t_0``, each ends where the next starts, the last ends at ``t_K``.
@@ -45,11 +50,13 @@ from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_pa
                           trajectory_sha256, unhexf)
 from .defaults import check_depth, check_enclosure, check_margin  # noqa: E402
 from .enclosure.meshes import collision_geometry  # noqa: E402
+from .enclosure.proof import EnclosureNotProven, prove_enclosures  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
 from .errors import GeometryChanged, LarcInputError  # noqa: E402
 from .interval import dyadic_ends, trajectory_rounding  # noqa: E402
 from .io import read_input_text  # noqa: E402
 from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np  # noqa: E402
+from .robot import JointType  # noqa: E402
 from .scene import read_scene  # noqa: E402
 from .self_collision import curve_ranges, load_separation, self_pairs  # noqa: E402
 from .tracking import check_tracking_tolerance  # noqa: E402
@@ -152,6 +159,13 @@ def _load_robot(doc: dict, robot_path, excluded: list[str]):
     more = [x for x in excluded if x not in capsules.excluded_links]
     if more:
         capsules = capsules.without_links(robot, more, what="certificate excluded_links:")
+    if set(capsules.excluded_links) != set(excluded):  # the robot file's ignored_links must be declared
+        raise Refuted(f"robot: links {sorted(capsules.excluded_links)} are left out, the certificate's excluded_links "
+                      f"declares {sorted(excluded)}")
+    held = {robot.joint_names[i]: float(robot.q_held[i]) for i in range(1, robot.n_links)
+            if robot.q_index[i] < 0 and robot.joint_type[i] != JointType.FIXED}
+    if {str(j): _float(v, f"{where}.held_joints.{j}") for j, v in _get(doc, "held_joints", where, dict).items()} != held:
+        raise Refuted(f"robot: the held joint values {held} (robot file and stated joints) differ from the certificate's")
     if list(capsules.names) != _get(doc, "capsules", where, list):
         raise Refuted("robot: the capsule names differ from the certificate's")
     return robot, capsules
@@ -273,7 +287,12 @@ def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> V
     delta = None if tol is None else check_tracking_tolerance(
         {str(j): _float(v, f"parameters.tracking_tolerance.{j}") for j, v in dict(tol).items()}, rob,
         "parameters.tracking_tolerance")
-    enc = leaf_enclosures(rob, capsules, enclosure, delta)
+    robot_file = robot_file_path(robot if robot is not None else doc["robot"]["file"])
+    try:  # module docstring, step 1b: the hull parts proven are the ones the leaf test gets
+        hulls = prove_enclosures(rob, capsules, enclosure == "hull", source=str(robot_file))
+    except EnclosureNotProven as exc:
+        raise Refuted(str(exc)) from None
+    enc = leaf_enclosures(rob, capsules, enclosure, delta, hulls)
     sc = params.get("self_collision")
     pairs = None
     if sc is not None:
