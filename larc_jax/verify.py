@@ -164,8 +164,9 @@ def _load_robot(doc: dict, robot_path, excluded: list[str]):
                       f"declares {sorted(excluded)}")
     held = {robot.joint_names[i]: float(robot.q_held[i]) for i in range(1, robot.n_links)
             if robot.q_index[i] < 0 and robot.joint_type[i] != JointType.FIXED}
-    if {str(j): _float(v, f"{where}.held_joints.{j}") for j, v in _get(doc, "held_joints", where, dict).items()} != held:
-        raise Refuted(f"robot: the held joint values {held} (robot file and stated joints) differ from the certificate's")
+    recorded_held = {str(j): _float(v, f"{where}.held_joints.{j}") for j, v in _get(doc, "held_joints", where, dict).items()}
+    if recorded_held != held:
+        raise Refuted(f"robot: the held joint values {held} (robot file, stated joints) differ from the certificate's")
     if list(capsules.names) != _get(doc, "capsules", where, list):
         raise Refuted("robot: the capsule names differ from the certificate's")
     return robot, capsules
