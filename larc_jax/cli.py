@@ -534,9 +534,9 @@ def _cmd_verify(args) -> int:
         if args.json:
             print(json.dumps(input_error_json(args.certificate, str(exc)), indent=1))
         raise
-    if args.json:
+    if report is not None and args.json:
         print(json.dumps(report_json(report), indent=1))
-    elif not args.quiet:
+    elif report is not None and not args.quiet:
         print("\n".join(report_lines(report)))
     return status
 

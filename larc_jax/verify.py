@@ -299,7 +299,7 @@ def _robot_facts(doc: dict, given, rob, capsules, cert_excluded) -> RobotFacts:
     recorded = doc.get("file")
     path = robot_file_path(given if given is not None else recorded)
     source = "supplied" if given is not None else ("certificate" if recorded is not None else "shipped")
-    geometry = tuple((link, e["mesh"] if "mesh" in e else ", ".join(f"{k} {v}" for k, v in e.items() if k != "origin"),
+    geometry = tuple((link, ", ".join(f"{k} {v}" for k, v in e.items() if k not in ("origin", "sha256")),
                       e.get("sha256")) for link, elements in _get(doc, "geometry", "robot", dict).items()
                      for e in elements)  # equal to the files' (checked by _load_robot)
     held = tuple((rob.joint_names[i], float(rob.q_held[i]), rob.joint_names[i] in rob.stated_joints)
@@ -374,10 +374,10 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
     if doc.get("version") != CERTIFICATE_VERSION:
         raise LarcInputError(f"{source}: unknown certificate version {doc.get('version')!r} (this checker reads "
                              f"version {CERTIFICATE_VERSION})")
-    traj_docs = _get(doc, "trajectories", source, list)
-    est["trajectories"] = len(traj_docs)
     params = _parameters(_get(doc, "parameters", source, dict))
     est["parameters"] = params
+    traj_docs = _get(doc, "trajectories", source, list)
+    est["trajectories"] = len(traj_docs)
     pins.check_parameters(params)
     _check_ids(traj_docs)
     robot_doc = _get(doc, "robot", source, dict)

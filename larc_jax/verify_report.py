@@ -197,8 +197,10 @@ class VerifyPins:
             value = getattr(self, name)
             if value is not None and value not in allowed:
                 raise LarcInputError(f"{f(name)} {value!r}: one of {', '.join(allowed)}")
-        if self.robot_sha256 is not None and not re.fullmatch(r"[0-9a-f]{64}", str(self.robot_sha256)):
-            raise LarcInputError(f"{f('robot_sha256')} {str(self.robot_sha256)[:80]!r}: expected 64 lowercase hex digits")
+        if self.robot_sha256 is not None:
+            if not re.fullmatch(r"[0-9a-fA-F]{64}", str(self.robot_sha256)):
+                raise LarcInputError(f"{f('robot_sha256')} {str(self.robot_sha256)[:80]!r}: expected 64 hex digits")
+            object.__setattr__(self, "robot_sha256", str(self.robot_sha256).lower())
         if isinstance(self.tracking_tolerance_at_least, str):
             from .tracking import parse_tracking_tolerance
 
@@ -208,7 +210,8 @@ class VerifyPins:
     @classmethod
     def add_arguments(cls, parser: argparse.ArgumentParser) -> None:
         """Declare the pins as options of ``larc verify`` (their flags are the field names)."""
-        g = parser.add_argument_group("pins (a certificate that does not meet one is refuted, naming it)")
+        g = parser.add_argument_group("pins (a certificate that does not meet one is refuted, naming it) and "
+                                      "--allow-finite-difference")
         helps = {"margin_at_least_m": ("M", float, "margin rho >= M, m"),
                  "depth_at_most": ("D", int, "maximum bisection depth <= D"),
                  "velocities": ("MODE", VELOCITY_MODES, "every trajectory claimed certified read with this velocity mode"),
