@@ -16,7 +16,8 @@ What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
 * ``scenes``: per scene its file and the SHA-256 of its bytes (``null`` when certified through
   the Python API from a :class:`~larc_jax.scene.Scene`), and always ``arrays_sha256``, the
   SHA-256 of the canonical box arrays (:func:`scene_sha256`), and its box names.
-* ``trajectories``: per trajectory its id, file, file SHA-256 (``null`` through the API),
+* ``trajectories``: per trajectory its id (unique in the certificate: two trajectories with one
+  id are refused, here and by ``larc verify``), file, file SHA-256 (``null`` through the API),
   ``arrays_sha256`` of the canonical waypoint arrays (:func:`trajectory_sha256`), the velocity
   mode it was read with, its scene, the claim ``certified``, the horizon, the rounding-bound
   inputs of :func:`~larc_jax.interval.trajectory_rounding` (offset, tau, speed slack, guard per

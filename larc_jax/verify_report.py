@@ -24,6 +24,7 @@ import argparse
 import dataclasses
 import math
 import re
+from pathlib import Path
 
 from .defaults import ENCLOSURES, VELOCITY_MODES, check_depth, check_margin
 from .errors import LarcInputError
@@ -313,12 +314,12 @@ def _file_line(f: InputFile) -> str:
     return f"{f.path} ({given}) sha256 {f.sha256}{recorded}"
 
 
-def _mm(x: float | None) -> str:
-    return "none" if x is None else f"{x * 1000:.6g} mm"
+def _m(x: float | None) -> str:
+    return "none" if x is None else f"{x!r} m"  # exact: a rounded margin could hide one below a pin
 
 
 def _parameter_lines(p: Parameters) -> list[str]:
-    out = [f"  parameters (from the certificate): method {p.method}, margin {_mm(p.margin_m)}, maximum depth "
+    out = [f"  parameters (from the certificate): method {p.method}, margin {_m(p.margin_m)}, maximum depth "
            f"{p.max_depth}, enclosure {p.enclosure}, geometry dtype {p.dtype}",
            "  tracking tolerance: " + ("none (the planned curve only)" if not p.tracking_tolerance else
                                        ", ".join(f"{j} {x!r}" for j, x in p.tracking_tolerance))]
@@ -329,7 +330,7 @@ def _parameter_lines(p: Parameters) -> list[str]:
         for a, b, w in p.self_not_checked:
             why.setdefault(w, []).append(f"{a}:{b}")
         skipped = "; ".join(f"{w}: {', '.join(v)}" for w, v in why.items()) or "none"
-        out.append(f"  self-collision: margin {_mm(p.self_margin_m)}; link pairs not checked: {skipped}")
+        out.append(f"  self-collision: margin {_m(p.self_margin_m)}; link pairs not checked: {skipped}")
     return out
 
 
@@ -350,19 +351,13 @@ def _trajectory_line(t: TrajectoryFacts, scenes: dict[int, SceneFacts]) -> str:
         return f"{head}: not claimed certified (not checked)"
     if t.file is None:
         return f"{head}: claimed certified, not re-checked before the refutation"
-    stem_note = "" if _stem(t.file.path) == t.id else " (its id is not the file's name)"
+    stem_note = "" if Path(t.file.path).stem == t.id else " (its id is not the file's name)"
     ignored = (f" ({t.ignored_velocities} recorded velocities in the file ignored: accepted by "
                "--allow-finite-difference)") if t.ignored_velocities else ""
     scene = scenes.get(t.scene)
     return (f"{head}: {_file_line(t.file)}{stem_note}; arrays sha256 {t.arrays_sha256}; velocities "
             f"{t.velocities}{ignored}; scene {t.scene}" + (f" ({scene.file.path})" if scene else "") +
             f"; {t.leaves} leaves re-checked")
-
-
-def _stem(path: str) -> str:
-    from pathlib import Path
-
-    return Path(path).stem
 
 
 def report_lines(report: VerifyReport) -> list[str]:

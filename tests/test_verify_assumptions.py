@@ -179,7 +179,7 @@ def test_report_names_every_assumption_and_where_it_came_from(made, tmp_path):
     assert (p.margin_m, p.max_depth, p.enclosure, p.dtype, p.excluded_links, p.tracking_tolerance,
             p.self_margin_m) == (unhexf(made["doc"]["parameters"]["margin_m"]), 6, "hull", "float64", (), None, None)
     text = "\n".join(report_lines(report))
-    for what in ("margin 10 mm", "maximum depth 6", "enclosure hull", "geometry dtype float64",
+    for what in ("margin 0.01 m", "maximum depth 6", "enclosure hull", "geometry dtype float64",
                  "tracking tolerance: none", "self-collision: not certified", "excluded links (not checked at all): none",
                  "joint7 = 0.0 (not stated", "given by the caller", "PIPER's shipped file", "URDF: ", "pins: none"):
         assert what in text, what
