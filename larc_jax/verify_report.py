@@ -175,8 +175,10 @@ class VerifyPins:
     """Self-collision certified with at least this margin, m."""
     no_self_skip: bool = False
     """Self-collision certified without user-skipped link pairs."""
+    no_stated_joints: bool = False
+    """No held joint stated (the gripper enclosed over its whole stroke, valid at any opening)."""
     robot_sha256: str | None = None
-    """The robot file's bytes have this SHA-256."""
+    """The robot file's bytes have this SHA-256 (it records the URDF's and every mesh's)."""
     require_files: bool = False
     """Every scene and trajectory claimed certified is a file the caller supplied or one the
     certificate names with its file hash (not bound by its arrays alone)."""
@@ -215,7 +217,8 @@ class VerifyPins:
                                       "--allow-finite-difference")
         helps = {"margin_at_least_m": ("M", float, "margin rho >= M, m"),
                  "depth_at_most": ("D", int, "maximum bisection depth <= D"),
-                 "velocities": ("MODE", VELOCITY_MODES, "every trajectory claimed certified read with this velocity mode"),
+                 "velocities": ("MODE", VELOCITY_MODES,
+                                "every trajectory claimed certified read with this velocity mode"),
                  "enclosure": ("E", ENCLOSURES, "certified with this enclosure"),
                  "dtype": ("DTYPE", DTYPES, "certified with this geometry dtype"),
                  "tracking_tolerance_at_least": ("RAD|JOINT=V,...", str,
@@ -272,6 +275,10 @@ class VerifyPins:
         tracking tolerance per active joint, or None)."""
         if self.robot_sha256 is not None and r.file.sha256 != self.robot_sha256:
             self._refute("robot_sha256", f"the robot file {r.file.path} has sha256 {r.file.sha256}")
+        stated = [j for j, _, s in r.held_joints if s]
+        if self.no_stated_joints and stated:
+            self._refute("no_stated_joints",
+                         f"the certificate states {', '.join(stated)} (certified at that value alone)")
         if self.no_excluded_links and r.excluded_links:
             self._refute("no_excluded_links", "the robot file leaves out " + ", ".join(x for x, _ in r.excluded_links))
         if self.tracking_tolerance_at_least is not None:
@@ -282,7 +289,8 @@ class VerifyPins:
             want = check_tracking_tolerance(self.tracking_tolerance_at_least, robot,
                                             _flag("tracking_tolerance_at_least"))
             have = np.zeros_like(want) if delta is None else np.asarray(delta, np.float64)
-            short = [f"{j} {float(h)!r} < {float(w)!r}" for j, h, w in zip(robot.active_joint_names, have, want) if not h >= w]
+            short = [f"{j} {float(h)!r} < {float(w)!r}"
+                     for j, h, w in zip(robot.active_joint_names, have, want) if not h >= w]
             if short:
                 self._refute("tracking_tolerance_at_least", "the certificate's tolerance is " + ", ".join(short))
 
@@ -298,6 +306,7 @@ class VerifyPins:
 
 _BOOL_HELP = {
     "no_excluded_links": "no link left out (by the certificate or its robot file)",
+    "no_stated_joints": "no held joint stated (the gripper certified at any opening, not at one stated with --hold)",
     "self_collision": "self-collision certified",
     "no_self_skip": "self-collision certified without user-skipped link pairs",
     "require_files": "every scene and trajectory checked is a file given here or one the certificate names with "

@@ -180,7 +180,8 @@ def test_report_names_every_assumption_and_where_it_came_from(made, tmp_path):
             p.self_margin_m) == (unhexf(made["doc"]["parameters"]["margin_m"]), 6, "hull", "float64", (), None, None)
     text = "\n".join(report_lines(report))
     for what in ("margin 0.01 m", "maximum depth 6", "enclosure hull", "geometry dtype float64",
-                 "tracking tolerance: none", "self-collision: not certified", "excluded links (not checked at all): none",
+                 "tracking tolerance: none", "self-collision: not certified",
+                 "excluded links (not checked at all): none",
                  "joint7 = 0.0 (not stated", "given by the caller", "PIPER's shipped file", "URDF: ", "pins: none"):
         assert what in text, what
 
@@ -197,8 +198,8 @@ def test_a_refutation_carries_what_was_established(made, tmp_path):
 
 
 ALL_MATCHING = ["--margin-at-least", "0.01", "--depth-at-most", "6", "--enclosure", "hull", "--dtype", "float64",
-                "--no-excluded-links", "--tracking-tolerance-at-least", "0", "--velocities", "recorded",
-                "--require-files"]
+                "--no-excluded-links", "--no-stated-joints", "--tracking-tolerance-at-least", "0",
+                "--velocities", "recorded", "--require-files"]
 
 
 def test_pins_that_hold_verify(made, tmp_path, capsys):
@@ -221,6 +222,7 @@ def test_pins_that_hold_verify(made, tmp_path, capsys):
     (["--self-margin-at-least", "0"], None),
     (["--no-self-skip"], None),
     (["--robot-sha256", "0" * 64], None),
+    (["--no-stated-joints"], lambda d: d["robot"]["stated_joints"].update(joint7=hexf(0.0))),
     (["--velocities", "finite-difference"], None),
     (["--require-files"], lambda d: d["trajectories"][0].update(sha256=None)),
 ])
