@@ -29,7 +29,9 @@ velocities (:mod:`larc_jax.hermite`). A file without velocities is refused unles
 ``velocities="finite-difference"`` (CLI ``--velocities finite-difference``), which computes them
 from the positions (:func:`finite_difference_velocities`). The certificate then covers the
 Hermite curve through those velocities, which is a different curve from the one the
-controller that executes the waypoints may follow.
+controller that executes the waypoints may follow. On a file that records velocities the
+reader warns that it ignores them (:func:`read_trajectory_file` counts them), and ``larc
+verify`` refuses such a certificate unless ``--allow-finite-difference`` (:mod:`larc_jax.verify`).
 """
 
 from __future__ import annotations
