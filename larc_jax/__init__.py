@@ -25,7 +25,7 @@ __all__ = [
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities", "enable_compile_cache",
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
-    "write_certificate", "verify_certificate", "Refuted",
+    "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport",
 ]
 
 _loaded = False
@@ -59,7 +59,7 @@ def _load() -> None:
     from .trajectory_files import read_trajectory, write_trajectory
     from .urdf import load_robot
     from .certificate import write_certificate
-    from .verify import Refuted, verify_certificate  # last: it defers JAX, which is loaded by now
+    from .verify import Refuted, VerifyPins, VerifyReport, verify_certificate  # last: it defers JAX, which is loaded by now
     globals().update({k: v for k, v in locals().items() if k in __all__})
     _loaded = True
 

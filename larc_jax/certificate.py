@@ -16,7 +16,8 @@ What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
 * ``scenes``: per scene its file and the SHA-256 of its bytes (``null`` when certified through
   the Python API from a :class:`~larc_jax.scene.Scene`), and always ``arrays_sha256``, the
   SHA-256 of the canonical box arrays (:func:`scene_sha256`), and its box names.
-* ``trajectories``: per trajectory its id, file, file SHA-256 (``null`` through the API),
+* ``trajectories``: per trajectory its id (unique in the certificate: two trajectories with one
+  id are refused, here and by ``larc verify``), file, file SHA-256 (``null`` through the API),
   ``arrays_sha256`` of the canonical waypoint arrays (:func:`trajectory_sha256`), the velocity
   mode it was read with, its scene, the claim ``certified``, the horizon, the rounding-bound
   inputs of :func:`~larc_jax.interval.trajectory_rounding` (offset, tau, speed slack, guard per
@@ -148,7 +149,12 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
     if len(trajectories) != len(result.ids) or len(per_traj) != len(trajectories):
         raise LarcInputError(f"certificate: the result has {len(result.ids)} trajectories, but "
                              f"{len(trajectories)} trajectories and {len(per_traj)} scenes were given")
-    if tuple(t.id for t in trajectories) != tuple(result.ids):
+    ids = [t.id for t in trajectories]
+    twice = next((i for k, i in enumerate(ids) if i in ids[:k]), None)
+    if twice is not None:  # larc verify refuses a certificate naming two trajectories by one id
+        raise LarcInputError(f"certificate: two trajectories have the id '{twice}' (e.g. files of the same name in "
+                             "two folders): give each trajectory its own id")
+    if tuple(ids) != tuple(result.ids):
         raise LarcInputError("certificate: the trajectories are not the ones the result was computed for (ids differ)")
     # Scenes in order of first appearance: the result's box codes are offset in the same order.
     unique = list(dict.fromkeys(id(s) for s in per_traj))

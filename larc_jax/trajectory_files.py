@@ -29,7 +29,9 @@ velocities (:mod:`larc_jax.hermite`). A file without velocities is refused unles
 ``velocities="finite-difference"`` (CLI ``--velocities finite-difference``), which computes them
 from the positions (:func:`finite_difference_velocities`). The certificate then covers the
 Hermite curve through those velocities, which is a different curve from the one the
-controller that executes the waypoints may follow.
+controller that executes the waypoints may follow. On a file that records velocities the
+reader warns that it ignores them (:func:`read_trajectory_file` counts them), and ``larc
+verify`` refuses such a certificate unless ``--allow-finite-difference`` (:mod:`larc_jax.verify`).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import logging
 import math
 import re
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import yaml
@@ -54,6 +57,8 @@ from .trajectory import (MAX_WAYPOINTS, VELOCITY_MODES, Locator, Trajectory, che
 
 __all__ = [
     "read_trajectory",
+    "read_trajectory_file",
+    "TrajectoryFile",
     "write_trajectory",
     "trajectory_to_msg",
     "trajectory_to_csv",
@@ -141,7 +146,12 @@ def trajectory_from_msg(
     return _from_msg(msg, source=source, traj_id=traj_id, velocities=velocities)[0]
 
 
-def _from_msg(msg, *, source: str, traj_id: str, velocities: str) -> tuple[Trajectory, Locator]:
+_IGNORED_VELOCITIES = ("%s: ignoring the recorded velocities of %d waypoints: velocities are computed by finite "
+                       "differences, so the result covers the Hermite curve through those, not the motion the file "
+                       "describes (larc verify refuses its certificate unless --allow-finite-difference)")
+
+
+def _from_msg(msg, *, source: str, traj_id: str, velocities: str) -> tuple[Trajectory, Locator, int]:
     _check_mode(velocities)
     msg, prefix = _unwrap(msg, source)
     loc = msg_locator(prefix)
@@ -184,10 +194,9 @@ def _from_msg(msg, *, source: str, traj_id: str, velocities: str) -> tuple[Traje
         t[k] = _time_of(p["time_from_start"], source, loc(k, "time_from_start", None))
     if not recorded:
         if ignored:
-            log.warning("%s: ignoring the recorded velocities of %d waypoints: velocities are "
-                        "computed by finite differences", source, ignored)
+            log.warning(_IGNORED_VELOCITIES, source, ignored)
         qd = finite_difference_velocities(t, q, source=source, where=loc)
-    return Trajectory(t=t, q=q, qd=qd, joint_names=tuple(names), id=traj_id, source=source), loc
+    return Trajectory(t=t, q=q, qd=qd, joint_names=tuple(names), id=traj_id, source=source), loc, ignored
 
 
 
@@ -245,7 +254,7 @@ def _velocity_joint(column: str) -> str | None:
     return None
 
 
-def _read_csv(path: Path, *, traj_id: str, velocities: str) -> tuple[Trajectory, Locator]:
+def _read_csv(path: Path, *, traj_id: str, velocities: str) -> tuple[Trajectory, Locator, int]:
     """CSV reader (module docstring). Errors are ``file:line: column 'name': problem``."""
     source = str(path)
     text = _read_text(path)
@@ -303,7 +312,7 @@ def _read_csv(path: Path, *, traj_id: str, velocities: str) -> tuple[Trajectory,
         if missing:
             raise err(header_line, f"no velocity column for {missing} (name it <joint>_vel or qd_<joint>)")
     elif vel_of:
-        log.warning("%s: ignoring the velocity columns: velocities are computed by finite differences", source)
+        log.warning(_IGNORED_VELOCITIES, source, len(data))
     vel_cols = [vel_of[n] for n in names] if recorded else []
     if len(data) < 2:
         raise LarcInputError(f"{source}: needs at least 2 waypoint rows after the header, found {len(data)}")
@@ -337,7 +346,17 @@ def _read_csv(path: Path, *, traj_id: str, velocities: str) -> tuple[Trajectory,
 
     if not recorded:
         qd = finite_difference_velocities(t, q, source=source, where=loc)
-    return Trajectory(t=t, q=q, qd=qd, joint_names=tuple(names), id=traj_id, source=source), loc
+    ignored = len(data) if vel_of and not recorded else 0
+    return Trajectory(t=t, q=q, qd=qd, joint_names=tuple(names), id=traj_id, source=source), loc, ignored
+
+
+class TrajectoryFile(NamedTuple):
+    """A trajectory as read from its file, and what the reading left out."""
+
+    trajectory: Trajectory
+    ignored_velocities: int
+    """Waypoints whose recorded velocities were ignored (``velocities="finite-difference"`` on a
+    file that carries velocities: the trajectory then differs from the motion the file describes)."""
 
 
 def read_trajectory(
@@ -348,19 +367,25 @@ def read_trajectory(
 
     ``velocities``: ``"recorded"`` (default) uses the file's velocities and refuses a file
     without them; ``"finite-difference"`` computes them from the positions
-    (:func:`finite_difference_velocities`). Validated against ``robot`` when given.
+    (:func:`finite_difference_velocities`; a warning says so when the file carries velocities).
+    Validated against ``robot`` when given.
     """
+    return read_trajectory_file(path, robot, velocities=velocities).trajectory
+
+
+def read_trajectory_file(path: str | Path, robot: Robot | None = None, *, velocities: str = "recorded") -> TrajectoryFile:
+    """:func:`read_trajectory`, also counting the waypoints whose recorded velocities were ignored."""
     _check_mode(velocities)
     path = Path(path)
     with deferred_log(log):  # a refused file gives its error line only, not warnings too
         if path.suffix.lower() == ".csv":
-            traj, loc = _read_csv(path, traj_id=path.stem, velocities=velocities)
+            traj, loc, ignored = _read_csv(path, traj_id=path.stem, velocities=velocities)
         else:
             doc = _load_document(path)
             if robot is not None:
                 _precheck_joint_names(doc, robot, str(path))
-            traj, loc = _from_msg(doc, source=str(path), traj_id=path.stem, velocities=velocities)
-        return validate_trajectory(traj, robot, where=loc) if robot is not None else traj
+            traj, loc, ignored = _from_msg(doc, source=str(path), traj_id=path.stem, velocities=velocities)
+        return TrajectoryFile(validate_trajectory(traj, robot, where=loc) if robot is not None else traj, ignored)
 
 
 def _stamp(t: float) -> dict:

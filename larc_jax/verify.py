@@ -29,6 +29,30 @@ Trajectories the certificate does not claim certified are not checked. The first
 raises :class:`Refuted` naming the trajectory, the leaf and why (``larc verify`` exit 1); a
 missing or malformed file or an unknown format version is :class:`LarcInputError` (exit 2).
 
+What was checked is reported (:class:`~larc_jax.verify_report.VerifyReport`, also carried by a
+:class:`Refuted` up to the refutation): every file read with the SHA-256 of its bytes and whether
+the caller supplied it or the certificate named it, the parameters (always the certificate's),
+held and stated joints, excluded links, the self-collision pairs not checked, each trajectory's
+velocity mode. Labels are not trusted: a certificate naming two trajectories by one id is
+refuted, and the report names the file behind each id (a file whose name is not its id, a scene
+of zero boxes, are shown as such). :class:`~larc_jax.verify_report.VerifyPins` hold the
+certificate to what the caller requires (margin, depth, enclosure, dtype, velocity mode, no
+excluded links, tracking tolerance, self-collision, the robot file's hash, files with hashes);
+a pin not met is a refutation naming it.
+
+Velocities. A file that records velocities describes one motion: the Hermite curve through its
+positions *and velocities*, what a controller following it executes. A certificate made with
+``velocities: finite-difference`` covers the Hermite curve through velocities computed from the
+positions instead, another motion, which can pass through an obstacle the file's motion hits
+(three equal waypoints whose middle velocity swings the arm through a post: the
+finite-difference curve stands still). Its hashes match the file, so a reader who sees that file
+"verified" would believe its motion safe. The checker therefore refuses by default a trajectory
+certified with finite-difference velocities whose file records velocities (at any waypoint);
+``allow_finite_difference`` (``--allow-finite-difference``) accepts it, and the report says
+how many recorded velocities were ignored. A file without velocities has only the
+finite-difference reading: it is accepted, its mode printed (pin ``velocities="recorded"`` to
+refuse it).
+
 This module defers JAX (:func:`larc_jax.lazy_jax.defer_jax`) before importing the library, so a
 process that imports it (``larc verify``) never loads JAX; ``tests/test_certificate.py`` checks.
 """
@@ -48,7 +72,7 @@ import numpy as np  # noqa: E402
 
 from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_path, scene_sha256,  # noqa: E402
                           trajectory_sha256, unhexf)
-from .defaults import check_depth, check_enclosure, check_margin  # noqa: E402
+from .defaults import VELOCITY_MODES, check_depth, check_enclosure, check_margin  # noqa: E402
 from .enclosure.meshes import collision_geometry  # noqa: E402
 from .enclosure.proof import EnclosureNotProven, prove_enclosures  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
@@ -60,32 +84,16 @@ from .robot import JointType  # noqa: E402
 from .scene import read_scene  # noqa: E402
 from .self_collision import curve_ranges, load_separation, self_pairs  # noqa: E402
 from .tracking import check_tracking_tolerance  # noqa: E402
-from .trajectory_files import read_trajectory  # noqa: E402
 from .urdf import file_sha256  # noqa: E402
+from .trajectory_files import read_trajectory_file  # noqa: E402
+from .verify_report import (InputFile, Parameters, Refuted, RobotFacts, SceneFacts, TrajectoryFacts,  # noqa: E402
+                            VerifyPins, VerifyReport)
 
-__all__ = ["Refuted", "VerifyReport", "verify_certificate", "CLEARANCE_TOL_M"]
+__all__ = ["Refuted", "VerifyReport", "VerifyPins", "verify_certificate", "CLEARANCE_TOL_M"]
 
 CLEARANCE_TOL_M = 1e-9
 """Absolute part of the agreement asked of a stored clearance, m (module docstring, step 3)."""
 _ROUNDING_RTOL = 1e-9
-
-
-class Refuted(Exception):
-    """The certificate's claim does not hold (the message names the trajectory, leaf and why)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class VerifyReport:
-    trajectories: int
-    """Trajectories in the certificate."""
-    checked: int
-    """Of them, claimed certified and re-checked."""
-    leaves: int
-    """Leaves re-checked."""
-    max_clearance_diff_m: float
-    """Largest |stored clearance - recomputed clearance| over the re-checked leaves, m."""
-    min_excess_m: float
-    """Smallest recomputed ``g - guard`` over the re-checked leaves, m (> 0)."""
 
 
 def _get(doc, key, where: str, kind=None):
@@ -172,18 +180,26 @@ def _load_robot(doc: dict, robot_path, excluded: list[str]):
     return robot, capsules
 
 
-def _load_scenes(docs: list, files: list, robot) -> list:
+def _input_file(path, given, recorded_sha256, what: str) -> InputFile:
+    return InputFile(path=str(path), source="supplied" if given is not None else "certificate",
+                     sha256=_sha256(path, what), recorded_sha256=recorded_sha256)
+
+
+def _load_scenes(docs: list, files: list, robot, pins: VerifyPins, facts: list) -> list:
     scenes = []
     for k, (doc, given) in enumerate(zip(docs, files)):
         where = f"scenes[{k}]"
         path = given if given is not None else _get(doc, "file", where)
         if path is None:
             raise LarcInputError(f"{where}: certified from arrays through the Python API; give its file (larc verify --scene, verify_certificate(scenes=...))")
-        if doc.get("sha256") is not None:
-            _check_hash(_sha256(path, "scene file"), doc["sha256"], f"scene file {path}")
+        file = _input_file(path, given, doc.get("sha256"), "scene file")
+        pins.check_input(f"scene {k}", file)
+        _check_hash(file.sha256, file.recorded_sha256, f"scene file {path}")
         scene = read_scene(path, frame=robot.link_names[0])
-        _check_hash(scene_sha256(scene), _get(doc, "arrays_sha256", where, str), f"scene {path} (its boxes)")
+        arrays = _get(doc, "arrays_sha256", where, str)
+        _check_hash(scene_sha256(scene), arrays, f"scene {path} (its boxes)")
         scenes.append(scene)
+        facts.append(SceneFacts(index=k, file=file, arrays_sha256=arrays, boxes=tuple(scene.box_names)))
     return scenes
 
 
@@ -260,10 +276,108 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures
     return len(t0), diff, excess
 
 
-def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> VerifyReport:
+def _parameters(params: dict) -> Parameters:
+    margin = check_margin(_float(_get(params, "margin_m", "parameters"), "parameters.margin_m"), "parameters.margin_m")
+    max_depth = check_depth(_get(params, "max_depth", "parameters", int), "parameters.max_depth")
+    dtype = _get(params, "dtype", "parameters", str)
+    if dtype not in ("float64", "float32"):
+        raise LarcInputError(f"parameters.dtype {dtype!r} is not float64 or float32")
+    enclosure = check_enclosure(_get(params, "enclosure", "parameters", str), "parameters.enclosure")
+    tol = params.get("tracking_tolerance")
+    if tol is not None and not isinstance(tol, dict):
+        raise LarcInputError("parameters.tracking_tolerance: expected a mapping joint -> float.hex() or null")
+    sc = params.get("self_collision")
+    return Parameters(
+        method=params.get("method"), margin_m=margin, max_depth=max_depth, dtype=dtype, enclosure=enclosure,
+        excluded_links=tuple(_get(params, "excluded_links", "parameters", list)),
+        tracking_tolerance=None if tol is None else tuple(
+            (str(j), _float(v, f"parameters.tracking_tolerance.{j}")) for j, v in tol.items()),
+        self_margin_m=None if sc is None else _float(_get(sc, "margin_m", "parameters.self_collision"),
+                                                     "parameters.self_collision.margin_m"),
+        self_skip=() if sc is None else tuple(_get(sc, "skip", "parameters.self_collision", list)))
+
+
+def _check_ids(docs: list) -> None:
+    """A certificate names each trajectory once: two claims under one id would let a reader take
+    the one re-checked for the other."""
+    seen: dict[str, int] = {}
+    for k, tdoc in enumerate(docs):
+        tid = str(_get(tdoc, "id", f"trajectories[{k}]"))
+        if tid in seen:
+            raise Refuted(f"trajectories[{seen[tid]}] and trajectories[{k}] have the same id '{tid}' (a certificate "
+                          "names each trajectory once)")
+        seen[tid] = k
+
+
+def _robot_facts(doc: dict, given, rob, capsules, cert_excluded) -> RobotFacts:
+    recorded = doc.get("file")
+    path = robot_file_path(given if given is not None else recorded)
+    source = "supplied" if given is not None else ("certificate" if recorded is not None else "shipped")
+    geometry = tuple((link, ", ".join(f"{k} {v}" for k, v in e.items() if k not in ("origin", "sha256")),
+                      e.get("sha256")) for link, elements in _get(doc, "geometry", "robot", dict).items()
+                     for e in elements)  # equal to the files' (checked by _load_robot)
+    held = tuple((rob.joint_names[i], float(rob.q_held[i]), rob.joint_names[i] in rob.stated_joints)
+                 for i in range(rob.n_links) if rob.joint_type[i] != JointType.FIXED and rob.q_index[i] < 0)
+    return RobotFacts(
+        file=InputFile(str(path), source, _sha256(path, "robot file"), doc.get("sha256")), urdf=str(rob.urdf_path),
+        urdf_sha256=rob.urdf_sha256, geometry=geometry, active_joints=tuple(rob.active_joint_names), held_joints=held,
+        capsules=int(capsules.n_capsules),
+        excluded_links=tuple((x, "certificate" if x in cert_excluded else "robot file")
+                             for x in capsules.excluded_links))
+
+
+def _read_claimed(tdoc: dict, k: int, given, rob, pins: VerifyPins):
+    """Read the file of a trajectory claimed certified; returns it and its facts."""
+    where = f"trajectories[{k}]"
+    tid = str(_get(tdoc, "id", where))
+    mode = tdoc.get("velocities") or "recorded"
+    if mode not in VELOCITY_MODES:
+        raise LarcInputError(f"{where}.velocities: {str(mode)[:40]!r} is not one of {', '.join(VELOCITY_MODES)}")
+    pins.check_velocities(tid, mode)
+    tpath = given if given is not None else _get(tdoc, "file", where)
+    if tpath is None:
+        raise LarcInputError(f"{where} ('{tid}'): certified from arrays through the Python API; give its file "
+                             "(larc verify --trajectory, verify_certificate(trajectories=...))")
+    file = _input_file(tpath, given, tdoc.get("sha256"), "trajectory file")
+    pins.check_input(f"trajectory '{tid}'", file)
+    _check_hash(file.sha256, file.recorded_sha256, f"trajectory file {tpath}")
+    traj, ignored = read_trajectory_file(tpath, rob, velocities=mode)
+    if ignored and not pins.allow_finite_difference:
+        raise Refuted(f"trajectory '{tid}': certified with finite-difference velocities, but its file {tpath} records "
+                      f"velocities at {ignored} waypoints: the certificate covers another motion than the one the file "
+                      "describes (--allow-finite-difference accepts it)")
+    arrays = _get(tdoc, "arrays_sha256", where, str)
+    _check_hash(trajectory_sha256(traj), arrays, f"trajectory '{tid}' ({tpath})")
+    return traj, TrajectoryFacts(id=tid, claimed=True, scene=_get(tdoc, "scene", where, int), velocities=mode,
+                                 file=file, arrays_sha256=arrays, ignored_velocities=ignored)
+
+
+def verify_certificate(path, *, trajectories=None, scenes=None, robot=None, pins: VerifyPins | None = None,
+                       **pin_values) -> VerifyReport:
     """Re-check the certificate at ``path`` (module docstring). ``trajectories`` / ``scenes``:
     files to use instead of the ones it names (one per trajectory / scene, in its order);
-    ``robot``: the robot file instead of its. Raises :class:`Refuted` or :class:`LarcInputError`."""
+    ``robot``: the robot file instead of its. ``pins`` (or its fields as keyword arguments, e.g.
+    ``margin_at_least_m=0.01``): what the certificate must also meet (:class:`VerifyPins`).
+    Returns the :class:`VerifyReport`; raises :class:`Refuted` (carrying the report up to the
+    refutation) or :class:`LarcInputError`."""
+    if pins is None:
+        pins = VerifyPins(**pin_values)
+    elif pin_values:
+        raise LarcInputError("verify_certificate: give pins= or pin keyword arguments, not both")
+    est = {"certificate": str(path), "pins": pins.asked(), "allow_finite_difference": pins.allow_finite_difference,
+           "scene_files": [], "trajectory_files": []}
+    try:
+        return _verify(path, trajectories, scenes, robot, pins, est)
+    except Refuted as exc:
+        exc.report = _report(est, refuted=str(exc))
+        raise
+
+
+def _report(est: dict, **more) -> VerifyReport:
+    return VerifyReport(**{k: tuple(v) if isinstance(v, list) else v for k, v in {**est, **more}.items()})
+
+
+def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> VerifyReport:
     source = str(path)
     try:
         doc = json.loads(read_input_text(Path(path), "certificate"))
@@ -274,56 +388,49 @@ def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> V
     if doc.get("version") != CERTIFICATE_VERSION:
         raise LarcInputError(f"{source}: unknown certificate version {doc.get('version')!r} (this checker reads "
                              f"version {CERTIFICATE_VERSION})")
-    params = _get(doc, "parameters", source, dict)
-    margin = check_margin(_float(_get(params, "margin_m", "parameters"), "parameters.margin_m"), "parameters.margin_m")
-    max_depth = check_depth(_get(params, "max_depth", "parameters", int), "parameters.max_depth")
-    dtype = _get(params, "dtype", "parameters", str)
-    if dtype not in ("float64", "float32"):
-        raise LarcInputError(f"{source}: parameters.dtype {dtype!r} is not float64 or float32")
-    rob, capsules = _load_robot(_get(doc, "robot", source, dict), robot,
-                                list(_get(params, "excluded_links", "parameters", list)))
-    enclosure = _get(params, "enclosure", "parameters", str)
-    check_enclosure(enclosure, "parameters.enclosure")
-    tol = params.get("tracking_tolerance")
-    delta = None if tol is None else check_tracking_tolerance(
-        {str(j): _float(v, f"parameters.tracking_tolerance.{j}") for j, v in dict(tol).items()}, rob,
-        "parameters.tracking_tolerance")
-    robot_file = robot_file_path(robot if robot is not None else doc["robot"]["file"])
+    params = _parameters(_get(doc, "parameters", source, dict))
+    est["parameters"] = params
+    traj_docs = _get(doc, "trajectories", source, list)
+    est["trajectories"] = len(traj_docs)
+    pins.check_parameters(params)
+    _check_ids(traj_docs)
+    robot_doc = _get(doc, "robot", source, dict)
+    rob, capsules = _load_robot(robot_doc, robot, list(params.excluded_links))
+    est["robot"] = _robot_facts(robot_doc, robot, rob, capsules, params.excluded_links)
+    delta = None if params.tracking_tolerance is None else check_tracking_tolerance(
+        dict(params.tracking_tolerance), rob, "parameters.tracking_tolerance")
+    pins.check_robot(est["robot"], rob, delta)
+    robot_file = robot_file_path(robot if robot is not None else robot_doc["file"])
     try:  # module docstring, step 1b: the hull parts proven are the ones the leaf test gets
-        hulls = prove_enclosures(rob, capsules, enclosure == "hull", source=str(robot_file))
+        hulls = prove_enclosures(rob, capsules, params.enclosure == "hull", source=str(robot_file))
     except EnclosureNotProven as exc:
         raise Refuted(str(exc)) from None
-    enc = leaf_enclosures(rob, capsules, enclosure, delta, hulls)
-    sc = params.get("self_collision")
+    enc = leaf_enclosures(rob, capsules, params.enclosure, delta, hulls)
     pairs = None
-    if sc is not None:
-        pairs = self_pairs(rob, capsules, _float(_get(sc, "margin_m", "parameters.self_collision"),
-                                                  "parameters.self_collision.margin_m"),
-                           list(_get(sc, "skip", "parameters.self_collision", list)), proven=load_separation(rob))
+    if params.self_margin_m is not None:
+        pairs = self_pairs(rob, capsules, params.self_margin_m, list(params.self_skip), proven=load_separation(rob))
+        est["parameters"] = dataclasses.replace(params, self_not_checked=tuple(pairs.skipped))
         pairs = pairs if pairs.n_pairs else None
     scene_docs = _get(doc, "scenes", source, list)
-    loaded_scenes = _load_scenes(scene_docs, _override(scenes, len(scene_docs), "--scene"), rob)
-    traj_docs = _get(doc, "trajectories", source, list)
+    loaded_scenes = _load_scenes(scene_docs, _override(scenes, len(scene_docs), "--scene"), rob, pins,
+                                 est["scene_files"])
     files = _override(trajectories, len(traj_docs), "--trajectory")
     checked = n_leaves = 0
     diff, excess = 0.0, math.inf
     for k, (tdoc, given) in enumerate(zip(traj_docs, files)):
         where = f"trajectories[{k}]"
-        if _get(tdoc, "certified", where, bool) is not True:
-            continue  # no claim, nothing to check
-        tid = str(_get(tdoc, "id", where))
-        tpath = given if given is not None else _get(tdoc, "file", where)
-        if tpath is None:
-            raise LarcInputError(f"{where} ('{tid}'): certified from arrays through the Python API; give its file "
-                                 "(larc verify --trajectory, verify_certificate(trajectories=...))")
-        if tdoc.get("sha256") is not None:
-            _check_hash(_sha256(tpath, "trajectory file"), tdoc["sha256"], f"trajectory file {tpath}")
-        traj = read_trajectory(tpath, rob, velocities=tdoc.get("velocities") or "recorded")
-        _check_hash(trajectory_sha256(traj), _get(tdoc, "arrays_sha256", where, str), f"trajectory '{tid}' ({tpath})")
-        s = _get(tdoc, "scene", where, int)
+        if _get(tdoc, "certified", where, bool) is not True:  # no claim, nothing to check
+            est["trajectory_files"].append(TrajectoryFacts(id=str(_get(tdoc, "id", where)), claimed=False,
+                                                           scene=tdoc.get("scene"),
+                                                           velocities=tdoc.get("velocities") or "recorded"))
+            continue
+        traj, facts = _read_claimed(tdoc, k, given, rob, pins)
+        s = facts.scene
         if not 0 <= s < len(loaded_scenes):
             raise LarcInputError(f"{where}.scene: {s} is not a scene index (0..{len(loaded_scenes) - 1})")
-        nl, d, e = _check_trajectory(tdoc, k, traj, loaded_scenes[s], rob, enc, margin, dtype, max_depth, pairs, delta)
+        est["trajectory_files"].append(facts)
+        nl, d, e = _check_trajectory(tdoc, k, traj, loaded_scenes[s], rob, enc, params.margin_m, params.dtype,
+                                     params.max_depth, pairs, delta)
+        est["trajectory_files"][-1] = dataclasses.replace(facts, leaves=nl)
         checked, n_leaves, diff, excess = checked + 1, n_leaves + nl, max(diff, d), min(excess, e)
-    return VerifyReport(trajectories=len(traj_docs), checked=checked, leaves=n_leaves, max_clearance_diff_m=diff,
-                        min_excess_m=excess)
+    return _report(est, checked=checked, leaves=n_leaves, max_clearance_diff_m=diff, min_excess_m=excess)
