@@ -67,18 +67,29 @@ def bases(tmp_path_factory):
 def cached_robot_loads():
     """Loading PIPER (motion constants, mesh hashes) is most of a verify call: the same robot
     file loaded with the same arguments gives the same robot, and the same robot the same mesh
-    hashes, so repeated identical calls are served from a cache (any other call, and every
-    failure, runs for real; no file changes during the test)."""
+    hashes, and the same robot and capsules the same containment proof, so repeated identical
+    calls are served from a cache (any other call, and every failure, runs for real; no file
+    changes during the test)."""
     load, geometry, seen = verify_module.load_robot_file, verify_module.collision_geometry, {}
+    prove, proven = verify_module.prove_enclosures, {}
 
     def cached_geometry(robot):
         if id(robot) not in seen:
             seen[id(robot)] = (robot, geometry(robot))  # the robot is kept: its id is not reused
         return seen[id(robot)][1]
 
+    def cached_proof(robot, capsules, hull, **kw):
+        # the containment proof of one robot and capsule model (a success only; both objects kept, so
+        # their ids are not reused): the same objects give the same proof
+        key = (id(robot), id(capsules), bool(hull))
+        if key not in proven:
+            proven[key] = (robot, capsules, prove(robot, capsules, hull, **kw))
+        return proven[key][2]
+
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(verify_module, "load_robot_file", lambda *a, **k: cached_robot_load(load, *a, **k))
         mp.setattr(verify_module, "collision_geometry", cached_geometry)
+        mp.setattr(verify_module, "prove_enclosures", cached_proof)
         yield
 
 
