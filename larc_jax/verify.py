@@ -31,7 +31,7 @@ process that imports it (``larc verify``) never loads JAX; ``tests/test_certific
 from __future__ import annotations
 
 import dataclasses
-import json
+import hashlib
 import math
 from pathlib import Path
 
@@ -43,18 +43,18 @@ import numpy as np  # noqa: E402
 
 from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_path, scene_sha256,  # noqa: E402
                           trajectory_sha256, unhexf)
+from .certificate_fields import check_certificate_fields  # noqa: E402
 from .defaults import check_depth, check_enclosure, check_margin  # noqa: E402
 from .enclosure.meshes import collision_geometry  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
-from .errors import GeometryChanged, LarcInputError  # noqa: E402
+from .errors import GeometryChanged, LarcInputError, OneLineError  # noqa: E402
 from .interval import dyadic_ends, trajectory_rounding  # noqa: E402
-from .io import read_input_text  # noqa: E402
+from .io import parse_json, read_input_bytes, read_input_text, short_repr  # noqa: E402
 from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np  # noqa: E402
 from .scene import read_scene  # noqa: E402
 from .self_collision import curve_ranges, load_separation, self_pairs  # noqa: E402
 from .tracking import check_tracking_tolerance  # noqa: E402
 from .trajectory_files import read_trajectory  # noqa: E402
-from .urdf import file_sha256  # noqa: E402
 
 __all__ = ["Refuted", "VerifyReport", "verify_certificate", "CLEARANCE_TOL_M"]
 
@@ -63,7 +63,7 @@ CLEARANCE_TOL_M = 1e-9
 _ROUNDING_RTOL = 1e-9
 
 
-class Refuted(Exception):
+class Refuted(OneLineError):
     """The certificate's claim does not hold (the message names the trajectory, leaf and why)."""
 
 
@@ -93,8 +93,9 @@ def _get(doc, key, where: str, kind=None):
 def _float(s, where: str) -> float:
     try:
         return unhexf(s)
-    except (TypeError, ValueError):
-        raise LarcInputError(f"{where}: not a float.hex() number: {str(s)[:40]!r}") from None
+    except (TypeError, ValueError, OverflowError):  # OverflowError: '0x1p+1024'
+        raise LarcInputError(f"{where}: not a float.hex() number (or beyond the float64 range): "
+                             f"{short_repr(s, 60)}") from None
 
 
 def _floats(doc, key, where: str) -> np.ndarray:
@@ -106,6 +107,9 @@ def _ints(doc, key, where: str) -> np.ndarray:
     values = _get(doc, key, where, list)
     if not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
         raise LarcInputError(f"{where}.{key}: expected a list of integers")
+    big = next((i for i, v in enumerate(values) if not -2**63 <= v < 2**63), None)  # int64
+    if big is not None:
+        raise LarcInputError(f"{where}.{key}[{big}]: {short_repr(values[big], 40)} is out of range")
     return np.array(values, np.int64)
 
 
@@ -118,10 +122,7 @@ def _override(given, n: int, what: str) -> list:
 
 
 def _sha256(path, what: str) -> str:
-    try:
-        return file_sha256(path)
-    except OSError as exc:
-        raise LarcInputError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+    return hashlib.sha256(read_input_bytes(path, what)).hexdigest()  # regular files, at most the cap
 
 
 def _check_hash(have: str, want, what: str) -> None:
@@ -212,6 +213,12 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures
                     trajectory_rounding(traj, robot, capsules, dtype, enc.hulls), f"{where}.rounding")
     lv = _get(doc, "leaves", where, dict)
     lw = f"{where}.leaves"
+    # Dyadic pieces of depth <= max_depth tile the horizon in at most 2**max_depth leaves: more
+    # cannot be a cover, and refusing them first bounds the work below by the parameters.
+    n_leaves = len(_get(lv, "depth", lw, list))
+    if n_leaves > 2 ** max_depth:
+        raise Refuted(f"trajectory '{tid}': {n_leaves} leaves, more than the 2**{max_depth} = {2 ** max_depth} "
+                      f"dyadic pieces of depth <= max_depth {max_depth} that can tile a horizon")
     depth, index, capsule = _ints(lv, "depth", lw), _ints(lv, "index", lw), _ints(lv, "capsule", lw)
     t0, t1 = _floats(lv, "t0", lw).tolist(), _floats(lv, "t1", lw).tolist()
     g_stored, guard_stored = _floats(lv, "clearance_m", lw).tolist(), _floats(lv, "guard_m", lw).tolist()
@@ -250,15 +257,13 @@ def verify_certificate(path, *, trajectories=None, scenes=None, robot=None) -> V
     files to use instead of the ones it names (one per trajectory / scene, in its order);
     ``robot``: the robot file instead of its. Raises :class:`Refuted` or :class:`LarcInputError`."""
     source = str(path)
-    try:
-        doc = json.loads(read_input_text(Path(path), "certificate"))
-    except json.JSONDecodeError as exc:
-        raise LarcInputError(f"{source}: not JSON ({exc.msg}, line {exc.lineno})") from None
+    doc = parse_json(read_input_text(Path(path), "certificate"), source)  # hostile JSON: one line, exit 2
     if not isinstance(doc, dict) or doc.get("format") != CERTIFICATE_FORMAT:
         raise LarcInputError(f"{source}: not a larc certificate (format {CERTIFICATE_FORMAT!r} expected)")
     if doc.get("version") != CERTIFICATE_VERSION:
         raise LarcInputError(f"{source}: unknown certificate version {doc.get('version')!r} (this checker reads "
                              f"version {CERTIFICATE_VERSION})")
+    check_certificate_fields(doc, source)
     params = _get(doc, "parameters", source, dict)
     margin = check_margin(_float(_get(params, "margin_m", "parameters"), "parameters.margin_m"), "parameters.margin_m")
     max_depth = check_depth(_get(params, "max_depth", "parameters", int), "parameters.max_depth")
