@@ -256,6 +256,8 @@ def _check_shape(doc, source: str, limit: int) -> None:
     stack = [(doc, False)]
     while stack:
         obj, done = stack.pop()
+        if not isinstance(obj, (list, dict)):
+            continue  # a scalar document
         children = list(obj.values()) if isinstance(obj, dict) else obj
         if done:
             depth, count = 0, 1
@@ -287,8 +289,9 @@ def parse_yaml_documents(text: str, source: str) -> list:
     holds a duplicate key, or is nested or aliased beyond the limits of :func:`_check_shape`."""
     try:
         docs = list(yaml.load_all(text, Loader=SafeYamlLoader))
-    except yaml.YAMLError as exc:
-        raise LarcInputError(f"{source}: not valid YAML ({_one_line(exc)})") from None
+    except yaml.YAMLError as exc:  # libyaml >= 0.2.5 stops at 1000 levels itself
+        deep = "nested too deeply: " if "maximum nesting depth" in str(exc) else ""
+        raise LarcInputError(f"{source}: not valid YAML ({deep}{_one_line(exc)})") from None
     except RecursionError:
         raise LarcInputError(f"{source}: not valid YAML (nested too deeply)") from None
     except (ValueError, OverflowError) as exc:  # e.g. a 5000-digit integer, a bad timestamp

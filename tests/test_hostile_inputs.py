@@ -18,6 +18,7 @@ import pytest
 
 import larc_jax.io as lio
 from larc_jax.cli import EXIT_BAD_INPUT, EXIT_OK, main
+from larc_jax.enclosure.robot_file import load_robot_file
 from larc_jax.errors import LarcInputError, one_line
 from larc_jax.scene import read_scene
 from larc_jax.trajectory_files import read_trajectory
@@ -157,7 +158,7 @@ HOSTILE_TEXT = {
     "cert.json": {"deep": _deep(), "duplicate": '{"format": "larc-certificate", "format": "x"}'},
 }
 READ = {"trajectory.yaml": read_trajectory, "trajectory.json": read_trajectory, "scene.yaml": read_scene,
-        "robot.yaml": lambda p: __import__("larc_jax.enclosure.robot_file", fromlist=["x"]).load_robot_file(p),
+        "robot.yaml": load_robot_file,
         "cert.json": verify_certificate}
 
 
