@@ -26,7 +26,7 @@ from pathlib import Path
 
 from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH,
                        DEFAULT_PADDING_M, ENCLOSURES, METHODS, VELOCITY_MODES, check_depth, check_margin)
-from .errors import LarcInputError
+from .errors import LarcInputError, OneLineError
 from .report import format_clearance, leaves_bytes, result_json, table_lines
 from .verify_report import VerifyPins
 
@@ -558,7 +558,7 @@ def _output_options(in_subcommand: bool) -> argparse.ArgumentParser:
     return o
 
 
-class _UsageError(Exception):
+class _UsageError(OneLineError):
     """A command-line usage error (argparse's), reported like bad input: one line, exit 2."""
 
 

@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import reprlib
+import stat
 import tempfile
 import threading
 from pathlib import Path
@@ -25,12 +26,16 @@ from .errors import LarcInputError
 
 __all__ = [
     "atomic_write_text", "atomic_write_bytes", "atomic_write_json",
-    "read_input_text", "parse_yaml_documents", "parse_yaml", "parse_json", "short_repr",
-    "deferred_log", "parse_number", "parse_vector", "real_array", "MAX_INPUT_BYTES",
+    "read_input_bytes", "read_input_text", "check_keys", "parse_yaml_documents", "parse_yaml", "parse_json", "short_repr",
+    "deferred_log", "parse_number", "parse_vector", "real_array", "MAX_INPUT_BYTES", "MAX_NESTING",
 ]
 
 MAX_INPUT_BYTES = 512 * 2**20
-"""Input files larger than this (512 MiB) are refused before they are read."""
+"""Input files larger than this (512 MiB) are refused; at most this many bytes (and one more) are
+read, whatever the file's size says (:func:`read_input_bytes`)."""
+MAX_NESTING = 64
+"""YAML and JSON documents nested deeper than this (lists and mappings) are refused: no input
+format nests beyond about 8, and the readers and checkers then never recurse deeply."""
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -85,24 +90,19 @@ def short_repr(value, limit: int = 100) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def read_input_text(path: str | os.PathLike, what: str = "file") -> str:
-    """The UTF-8 text of a user file, or :class:`LarcInputError` ``"<path>: <problem>"``.
+def read_input_bytes(path: str | os.PathLike, what: str = "file", cap: int | None = None) -> bytes:
+    """The bytes of a user file, at most ``cap`` (default :data:`MAX_INPUT_BYTES`), or
+    :class:`LarcInputError` ``"<path>: <problem>"``.
 
-    Problems: missing, a directory, unreadable (permissions, I/O), larger than
-    :data:`MAX_INPUT_BYTES`, not UTF-8 text (binary). A UTF-8 byte-order mark is dropped.
-    ``what`` names the file's role in the messages ("scene file", "robot file", ...).
+    The file is opened once (without blocking, so a FIFO with no writer cannot hang it) and must
+    be a regular file by ``fstat`` of that open file: a directory, FIFO, socket or device (a
+    link to ``/dev/zero``) is refused. ``st_size`` is not trusted: at most ``cap + 1`` bytes are
+    read, and a file that has more (it grew while read) is refused.
     """
     path = Path(path)
+    cap = MAX_INPUT_BYTES if cap is None else cap
     try:
-        size = path.stat().st_size
-        if path.is_dir():
-            raise IsADirectoryError
-        if size > MAX_INPUT_BYTES:
-            raise LarcInputError(
-                f"{path}: {what} is {size / 2**20:.0f} MiB, larger than the "
-                f"{MAX_INPUT_BYTES // 2**20} MiB limit for input files"
-            )
-        data = path.read_bytes()
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         raise LarcInputError(f"{path}: {what} does not exist") from None
     except IsADirectoryError:
@@ -112,11 +112,59 @@ def read_input_text(path: str | os.PathLike, what: str = "file") -> str:
     except OSError as exc:
         raise LarcInputError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
     try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise LarcInputError(f"{path}: is a directory, expected a {what}")
+        if not stat.S_ISREG(mode):
+            kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or
+                    stat.S_ISBLK(mode) else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+            raise LarcInputError(f"{path}: {what} is {kind}; expected a regular file")
+        chunks, total = [], 0
+        while total <= cap:
+            block = os.read(fd, min(1 << 20, cap + 1 - total))
+            if not block:
+                break
+            chunks.append(block)
+            total += len(block)
+    except OSError as exc:
+        raise LarcInputError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    finally:
+        os.close(fd)
+    if total > cap:
+        raise LarcInputError(f"{path}: {what} is larger than the {cap / 2**20:.0f} MiB limit for input files")
+    return b"".join(chunks)
+
+
+def read_input_text(path: str | os.PathLike, what: str = "file") -> str:
+    """The UTF-8 text of a user file, or :class:`LarcInputError` ``"<path>: <problem>"``.
+
+    Problems: those of :func:`read_input_bytes` (missing, a directory or other non-regular
+    file, unreadable, larger than :data:`MAX_INPUT_BYTES`), and not UTF-8 text (binary). A
+    UTF-8 byte-order mark is dropped. ``what`` names the file's role in the messages ("scene
+    file", "robot file", ...).
+    """
+    data = read_input_bytes(path, what)
+    try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise LarcInputError(
             f"{path}: not a text file (byte {exc.start} is not UTF-8; expected YAML/JSON text)"
         ) from None
+
+
+def check_keys(mapping, allowed, source: str, where: str = "", ignored=(), kind: str = "field") -> None:
+    """Refuse a key of ``mapping`` that is neither ``allowed`` nor documented as ``ignored``:
+    :class:`LarcInputError` ``"<source>: <where>: unknown field '<key>' (expected one of ...)"``.
+
+    Every reader calls it on every mapping it reads, so a typo (``obstacle:`` for ``boxes:``)
+    is an error rather than a field silently left out. ``kind`` names what a key is ("column").
+    """
+    known = set(allowed) | set(ignored)
+    for key in mapping:
+        if key not in known:
+            at = f"{where}: " if where else ""
+            raise LarcInputError(f"{source}: {at}unknown {kind} {short_repr(key)} (expected "
+                                 f"{', '.join(sorted(map(str, allowed)))})")
 
 
 @contextlib.contextmanager
@@ -148,37 +196,109 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())
 
 
+class _UniqueKeys(yaml.constructor.SafeConstructor):
+    """SafeConstructor that refuses a mapping holding the same key twice (PyYAML keeps the
+    last one silently, so ``{boxes: [...], boxes: []}`` would read as an empty scene)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = set()
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # '<<': merged keys may be overridden, as YAML says
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    duplicate = key in seen
+                    seen.add(key)
+                except TypeError:  # an unhashable key: SafeConstructor reports it
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"found duplicate key {short_repr(key)}", key_node.start_mark)
+        return super().construct_mapping(node, deep)
+
+
 try:  # libyaml's scanner and parser (fast), PyYAML's composer and constructor (recursion-checked)
     from yaml._yaml import CParser as _CParser
 
-    class SafeYamlLoader(yaml.composer.Composer, yaml.constructor.SafeConstructor,
-                         yaml.resolver.Resolver, _CParser):
+    class SafeYamlLoader(yaml.composer.Composer, _UniqueKeys, yaml.resolver.Resolver, _CParser):
         """Safe YAML loader: libyaml parses, pure Python composes and constructs.
 
         ``yaml.CSafeLoader`` composes in C without a depth check, so a deeply nested document
         (``[[[[...``) overflows the C stack and kills the process; the Python composer raises
-        ``RecursionError`` instead, which is reported as bad input.
+        ``RecursionError`` instead, which is reported as bad input. Duplicate keys are refused.
         """
 
         def __init__(self, stream):
             _CParser.__init__(self, stream)
-            yaml.constructor.SafeConstructor.__init__(self)
+            _UniqueKeys.__init__(self)
             yaml.resolver.Resolver.__init__(self)
             yaml.composer.Composer.__init__(self)
 except ImportError:  # pragma: no cover - PyYAML without libyaml
-    SafeYamlLoader = yaml.SafeLoader  # type: ignore[misc,assignment]
+    class SafeYamlLoader(yaml.reader.Reader, yaml.scanner.Scanner, yaml.parser.Parser,  # type: ignore[no-redef]
+                         yaml.composer.Composer, _UniqueKeys, yaml.resolver.Resolver):
+        def __init__(self, stream):
+            yaml.reader.Reader.__init__(self, stream)
+            yaml.scanner.Scanner.__init__(self)
+            yaml.parser.Parser.__init__(self)
+            yaml.composer.Composer.__init__(self)
+            _UniqueKeys.__init__(self)
+            yaml.resolver.Resolver.__init__(self)
+
+
+def _check_shape(doc, source: str, limit: int) -> None:
+    """Refuse a document nested deeper than :data:`MAX_NESTING`, one that contains itself (YAML
+    ``&a [*a]``), or one whose aliases expand it to more than ``limit`` values (``billion
+    laughs``): readers walk documents as trees. Iterative, and each shared value is counted once
+    per visit from its memo, so the check itself is linear in the document's text."""
+    memo: dict[int, tuple[int, int]] = {}   # id -> (nesting depth, values in its expansion)
+    open_ids: set[int] = set()              # started, not finished: the current path
+    stack = [(doc, False)]
+    while stack:
+        obj, done = stack.pop()
+        if not isinstance(obj, (list, dict)):
+            continue  # a scalar document
+        children = list(obj.values()) if isinstance(obj, dict) else obj
+        if done:
+            depth, count = 0, 1
+            for c in children:
+                d, n = memo.get(id(c), (0, 1)) if isinstance(c, (list, dict)) else (0, 1)
+                depth, count = max(depth, d), count + n
+            if depth + 1 > MAX_NESTING:
+                raise LarcInputError(f"{source}: nested more than {MAX_NESTING} levels deep")
+            if count > limit:
+                raise LarcInputError(f"{source}: its aliases expand it to more than {limit} values")
+            memo[id(obj)] = (depth + 1, count)
+            open_ids.discard(id(obj))
+            continue
+        if id(obj) in memo:
+            continue
+        if len(open_ids) >= MAX_NESTING:
+            raise LarcInputError(f"{source}: nested more than {MAX_NESTING} levels deep")
+        open_ids.add(id(obj))
+        stack.append((obj, True))
+        for c in children:
+            if isinstance(c, (list, dict)) and id(c) not in memo:
+                if id(c) in open_ids:
+                    raise LarcInputError(f"{source}: a YAML alias makes the document contain itself")
+                stack.append((c, False))
 
 
 def parse_yaml_documents(text: str, source: str) -> list:
-    """All documents of a YAML text (safe types only); :class:`LarcInputError` if it is not YAML."""
+    """All documents of a YAML text (safe types only); :class:`LarcInputError` if it is not YAML,
+    holds a duplicate key, or is nested or aliased beyond the limits of :func:`_check_shape`."""
     try:
-        return list(yaml.load_all(text, Loader=SafeYamlLoader))
-    except yaml.YAMLError as exc:
-        raise LarcInputError(f"{source}: not valid YAML ({_one_line(exc)})") from None
+        docs = list(yaml.load_all(text, Loader=SafeYamlLoader))
+    except yaml.YAMLError as exc:  # libyaml >= 0.2.5 stops at 1000 levels itself
+        deep = "nested too deeply: " if "maximum nesting depth" in str(exc) else ""
+        raise LarcInputError(f"{source}: not valid YAML ({deep}{_one_line(exc)})") from None
     except RecursionError:
         raise LarcInputError(f"{source}: not valid YAML (nested too deeply)") from None
     except (ValueError, OverflowError) as exc:  # e.g. a 5000-digit integer, a bad timestamp
         raise LarcInputError(f"{source}: not valid YAML ({_one_line(exc)})") from None
+    for doc in docs:
+        _check_shape(doc, source, len(text) + 1000)
+    return docs
 
 
 def parse_yaml(text: str, source: str):
@@ -189,14 +309,36 @@ def parse_yaml(text: str, source: str):
     return docs[0] if docs else None
 
 
+def _unique_pairs(pairs: list) -> dict:
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set = set()
+        key = next(k for k, _ in pairs if k in seen or seen.add(k))
+        raise _DuplicateKey(key)
+    return out
+
+
+class _DuplicateKey(Exception):
+    pass
+
+
 def parse_json(text: str, source: str):
-    """A JSON document (``NaN``/``Infinity`` literals accepted, checked later by the readers)."""
+    """A JSON document (``NaN``/``Infinity`` literals accepted, checked later by the readers);
+    :class:`LarcInputError` if it is not JSON, repeats a key in an object (Python would keep the
+    last silently), or nests deeper than :data:`MAX_NESTING`."""
     try:
-        return json.loads(text)
+        doc = json.loads(text, object_pairs_hook=_unique_pairs)
+    except _DuplicateKey as exc:
+        raise LarcInputError(f"{source}: not valid JSON (an object holds the key {short_repr(exc.args[0])} "
+                             "twice)") from None
     except RecursionError:
         raise LarcInputError(f"{source}: not valid JSON (nested too deeply)") from None
-    except ValueError as exc:  # JSONDecodeError, or an integer with too many digits
+    except json.JSONDecodeError as exc:
+        raise LarcInputError(f"{source}: not valid JSON ({exc.msg}, line {exc.lineno} column {exc.colno})") from None
+    except ValueError as exc:  # an integer with too many digits
         raise LarcInputError(f"{source}: not valid JSON ({_one_line(exc)})") from None
+    _check_shape(doc, source, len(text) + 1000)
+    return doc
 
 
 # ----------------------------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 
 A manifest is a CSV file with a header holding the columns ``trajectory`` and ``scene`` (paths
 relative to the manifest's folder; an optional ``id`` column names the trajectory, default the
-trajectory path as written). Rows are taken in chunks of ``chunk_size``; chunk ``k`` (rows
+trajectory path as written); any other column is an error naming it. Rows are taken in chunks of ``chunk_size``; chunk ``k`` (rows
 ``k*C .. k*C + C - 1``) is certified in one call and written as ``part-<k>.parquet`` into the
 results folder (and, with ``leaves``, into the leaves folder) — each a Parquet *dataset*
 (a folder of part files that ``pandas.read_parquet(folder)`` reads as one table).
@@ -18,7 +18,8 @@ all of it.
 Bad rows. A row whose trajectory or scene file is missing or invalid does not stop the run:
 its result row has ``certified = False`` and the one-line message in ``error``; the command
 line then exits with status 2 after writing everything. Memory is bounded by the chunk size
-(the manifest is read as a stream; parsed scenes are cached per chunk).
+and the manifest's text (read once, at most :data:`~larc_jax.io.MAX_INPUT_BYTES`, then parsed
+as a stream; parsed scenes are cached per chunk).
 
 The chunk function :func:`certify_chunk` is what runs everywhere: in this process
 (:func:`certify_manifest`) or on Dask workers (:mod:`larc_jax.distributed`), so both give
@@ -43,7 +44,7 @@ import numpy as np
 from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS, VELOCITY_MODES,
                        check_depth, check_enclosure, check_margin)
 from .errors import LarcInputError
-from .io import atomic_write_bytes, atomic_write_json, read_input_text
+from .io import atomic_write_bytes, atomic_write_json, check_keys, read_input_text
 from .stream import chunked
 
 __all__ = [
@@ -77,12 +78,16 @@ def _sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
+_MANIFEST_COLUMNS = ("trajectory", "scene", "id")
+
+
 def iter_manifest(path: str | Path) -> Iterator[ManifestRow]:
-    """The rows of a manifest, read as a stream (constant memory)."""
+    """The rows of a manifest, parsed as a stream from its text (read once: a FIFO, device or
+    a file swapped after a check is never opened again)."""
     path = Path(path)
-    read_input_text(path, "manifest")  # missing, directory, binary: one clear line
+    text = read_input_text(path, "manifest")  # missing, not a regular file, binary: one clear line
     folder = path.parent
-    with open(path, newline="", encoding="utf-8-sig") as f:
+    with io.StringIO(text, newline="") as f:
         reader = csv.reader(f, skipinitialspace=True)
         header = None
         row = 0
@@ -97,6 +102,7 @@ def iter_manifest(path: str | Path) -> Iterator[ManifestRow]:
                         raise LarcInputError(
                             f"{path}:{reader.line_num}: manifest header needs the columns trajectory and scene "
                             f"(missing {missing}; found {header})")
+                    check_keys(header, _MANIFEST_COLUMNS, f"{path}:{reader.line_num}", "header", kind="column")
                     col = {c: header.index(c) for c in ("trajectory", "scene")}
                     col_id = header.index("id") if "id" in header else None
                     continue

@@ -4,8 +4,12 @@ Scene YAML::
 
     frame: base_link            # must be the robot's root link
     units: m                    # optional; only metres are accepted
+    name: cell                  # optional
     boxes:
       - {name: wall_left, min: [x, y, z], max: [x, y, z]}
+
+Any other field, in the scene or in a box, is an error naming it (a typo such as ``obstacle:``
+or ``box:`` must not read as a scene with fewer boxes).
 
 MoveIt ``.scene`` text (``PlanningScene::saveGeometryToStream``, MoveIt 1 and 2), read when the
 file name ends in ``.scene``::
@@ -46,7 +50,7 @@ import numpy as np
 import yaml
 
 from .errors import LarcInputError
-from .io import deferred_log, parse_vector, parse_yaml, read_input_text, real_array, short_repr
+from .io import check_keys, deferred_log, parse_vector, parse_yaml, read_input_text, real_array, short_repr
 
 __all__ = ["Scene", "read_scene", "read_moveit_scene", "scene_from_dict", "pad_scenes"]
 
@@ -128,10 +132,15 @@ def _boxes_array(value, where: str) -> np.ndarray:
     return real_array(value, where, 2, 3)
 
 
+_SCENE_KEYS = ("frame", "units", "name", "boxes")
+_BOX_KEYS = ("name", "min", "max")
+
+
 def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str | None = None) -> Scene:
     """Build a scene from a parsed YAML mapping; ``frame`` (if given) is the required frame."""
     if not isinstance(doc, dict):
         raise LarcInputError(f"{source}: expected a mapping with 'frame' and 'boxes'")
+    check_keys(doc, _SCENE_KEYS, source)
     scene_frame = doc.get("frame", "base_link")
     if not isinstance(scene_frame, str):
         raise LarcInputError(f"{source}: frame must be a link name, got {short_repr(scene_frame)}")
@@ -157,6 +166,7 @@ def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str 
         where = f"boxes[{k}]"
         if not isinstance(box, dict):
             raise LarcInputError(f"{source}: {where} must be a mapping with min and max")
+        check_keys(box, _BOX_KEYS, source, where)
         for key in ("min", "max"):
             if key not in box:
                 raise LarcInputError(f"{source}: {where}.{key} is missing")

@@ -24,6 +24,14 @@ Accepted inputs (:func:`read_trajectory`):
 One message per file: several ``---``-separated messages are refused (record with
 ``ros2 topic echo --once`` or split the file).
 
+Fields. A message field the reader does not know is an error naming it (a typo such as
+``velocity:`` must not read as a trajectory without velocities). Documented as ignored, since
+they do not change the motion that is certified: ``header`` (JointTrajectory and an empty
+``multi_dof_joint_trajectory``), ``accelerations`` and ``effort`` (of a point), ``model_id``
+and ``trajectory_start`` (DisplayTrajectory). A CSV column that is not the time or a velocity
+column is a joint position column; one naming no joint of the robot is refused when the
+trajectory is checked against the robot.
+
 A trajectory is reconstructed by piecewise-cubic Hermite interpolation of the positions and
 velocities (:mod:`larc_jax.hermite`). A file without velocities is refused unless
 ``velocities="finite-difference"`` (CLI ``--velocities finite-difference``), which computes them
@@ -49,7 +57,7 @@ import numpy as np
 import yaml
 
 from .errors import LarcInputError
-from .io import (atomic_write_text, deferred_log, parse_json, parse_number, parse_vector,
+from .io import (atomic_write_text, check_keys, deferred_log, parse_json, parse_number, parse_vector,
                  parse_yaml_documents, read_input_text, short_repr)
 from .robot import Robot
 from .trajectory import (MAX_WAYPOINTS, VELOCITY_MODES, Locator, Trajectory, check_joint_names, check_times,
@@ -74,10 +82,7 @@ def _time_of(value, source: str, where: str) -> float:
     if isinstance(value, dict):
         if "sec" not in value and "secs" not in value:  # nanosec alone would silently drop seconds
             raise LarcInputError(f"{source}: {where}.sec is missing ({where} must have sec and nanosec)")
-        unknown = [k for k in value if k not in ("sec", "secs", "nanosec", "nsec", "nsecs")]
-        if unknown:
-            raise LarcInputError(
-                f"{source}: {where} has unknown field {short_repr(unknown[0])} (expected sec, nanosec)")
+        check_keys(value, ("sec", "secs", "nanosec", "nsec", "nsecs"), source, where)
         sec_key = "sec" if "sec" in value else "secs"
         nsec_key = next((k for k in ("nanosec", "nsec", "nsecs") if k in value), "nanosec")
         sec = parse_number(value.get(sec_key, 0), source, f"{where}.{sec_key}")
@@ -93,14 +98,22 @@ def _time_of(value, source: str, where: str) -> float:
         f"{source}: {where} must be {{sec, nanosec}} or a number of seconds, got {short_repr(value)}")
 
 
+_JOINT_TRAJECTORY = ("joint_names", "points")
+_POINT = ("positions", "velocities", "time_from_start")
+
+
 def _unwrap(doc, source: str):
     """The JointTrajectory mapping inside ``doc`` and its field prefix (``joint_trajectory.``...)."""
     if not isinstance(doc, dict):
         raise LarcInputError(f"{source}: expected a JointTrajectory mapping with joint_names and points")
     if "joint_names" in doc or "points" in doc:
+        check_keys(doc, _JOINT_TRAJECTORY, source, ignored=("header",))
         return doc, ""
     if "joint_trajectory" in doc:
+        check_keys(doc, ("joint_trajectory", "multi_dof_joint_trajectory"), source)
         multi = doc.get("multi_dof_joint_trajectory")
+        if isinstance(multi, dict):
+            check_keys(multi, _JOINT_TRAJECTORY, source, "multi_dof_joint_trajectory", ignored=("header",))
         if isinstance(multi, dict) and (multi.get("joint_names") or multi.get("points")):
             n = len(multi.get("points") or [])
             raise LarcInputError(
@@ -109,6 +122,7 @@ def _unwrap(doc, source: str):
                 f"are not supported; only joint_trajectory is certified")
         return doc["joint_trajectory"], "joint_trajectory."
     if "trajectory" in doc and isinstance(doc["trajectory"], list):
+        check_keys(doc, ("trajectory",), source, ignored=("model_id", "trajectory_start"))
         items = doc["trajectory"]
         if len(items) != 1:
             raise LarcInputError(
@@ -180,6 +194,7 @@ def _from_msg(msg, *, source: str, traj_id: str, velocities: str) -> tuple[Traje
     for k, p in enumerate(points):
         if not isinstance(p, dict):
             raise LarcInputError(f"{source}: {prefix}points[{k}] must be a mapping")
+        check_keys(p, _POINT, source, f"{prefix}points[{k}]", ignored=("accelerations", "effort"))
         for key in ("positions", "time_from_start"):
             if key not in p or p[key] is None:
                 raise LarcInputError(f"{source}: {loc(k, key, None)} is missing")

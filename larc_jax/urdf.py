@@ -46,7 +46,11 @@ __all__ = [
 
 
 def file_sha256(path: str | os.PathLike) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    """SHA-256 of a file's bytes, read as every user file is (:func:`~larc_jax.io.read_input_bytes`:
+    a regular file, at most the input cap; else :class:`LarcInputError`)."""
+    from .io import read_input_bytes
+
+    return hashlib.sha256(read_input_bytes(path)).hexdigest()
 
 
 def piper_description_dir() -> Path:

@@ -60,7 +60,7 @@ process that imports it (``larc verify``) never loads JAX; ``tests/test_certific
 from __future__ import annotations
 
 import dataclasses
-import json
+import hashlib
 import math
 from pathlib import Path
 
@@ -72,13 +72,14 @@ import numpy as np  # noqa: E402
 
 from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_path, scene_sha256,  # noqa: E402
                           trajectory_sha256, unhexf)
+from .certificate_fields import check_certificate_fields  # noqa: E402
 from .defaults import VELOCITY_MODES, check_depth, check_enclosure, check_margin  # noqa: E402
 from .enclosure.meshes import collision_geometry  # noqa: E402
 from .enclosure.proof import EnclosureNotProven, prove_enclosures  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
-from .errors import GeometryChanged, LarcInputError  # noqa: E402
+from .errors import GeometryChanged, LarcInputError, OneLineError  # noqa: E402
 from .interval import dyadic_ends, trajectory_rounding  # noqa: E402
-from .io import read_input_text  # noqa: E402
+from .io import parse_json, read_input_bytes, read_input_text, short_repr  # noqa: E402
 from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np  # noqa: E402
 from .robot import JointType  # noqa: E402
 from .scene import read_scene  # noqa: E402
@@ -108,8 +109,9 @@ def _get(doc, key, where: str, kind=None):
 def _float(s, where: str) -> float:
     try:
         return unhexf(s)
-    except (TypeError, ValueError):
-        raise LarcInputError(f"{where}: not a float.hex() number: {str(s)[:40]!r}") from None
+    except (TypeError, ValueError, OverflowError):  # OverflowError: '0x1p+1024'
+        raise LarcInputError(f"{where}: not a float.hex() number (or beyond the float64 range): "
+                             f"{short_repr(s, 60)}") from None
 
 
 def _floats(doc, key, where: str) -> np.ndarray:
@@ -121,6 +123,9 @@ def _ints(doc, key, where: str) -> np.ndarray:
     values = _get(doc, key, where, list)
     if not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
         raise LarcInputError(f"{where}.{key}: expected a list of integers")
+    big = next((i for i, v in enumerate(values) if not -2**63 <= v < 2**63), None)  # int64
+    if big is not None:
+        raise LarcInputError(f"{where}.{key}[{big}]: {short_repr(values[big], 40)} is out of range")
     return np.array(values, np.int64)
 
 
@@ -133,10 +138,7 @@ def _override(given, n: int, what: str) -> list:
 
 
 def _sha256(path, what: str) -> str:
-    try:
-        return file_sha256(path)
-    except OSError as exc:
-        raise LarcInputError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+    return hashlib.sha256(read_input_bytes(path, what)).hexdigest()  # regular files, at most the cap
 
 
 def _check_hash(have: str, want, what: str) -> None:
@@ -243,6 +245,12 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures
                     trajectory_rounding(traj, robot, capsules, dtype, enc.hulls), f"{where}.rounding")
     lv = _get(doc, "leaves", where, dict)
     lw = f"{where}.leaves"
+    # Dyadic pieces of depth <= max_depth tile the horizon in at most 2**max_depth leaves: more
+    # cannot be a cover, and refusing them first bounds the work below by the parameters.
+    n_leaves = len(_get(lv, "depth", lw, list))
+    if n_leaves > 2 ** max_depth:
+        raise Refuted(f"trajectory '{tid}': {n_leaves} leaves, more than the 2**{max_depth} = {2 ** max_depth} "
+                      f"dyadic pieces of depth <= max_depth {max_depth} that can tile a horizon")
     depth, index, capsule = _ints(lv, "depth", lw), _ints(lv, "index", lw), _ints(lv, "capsule", lw)
     t0, t1 = _floats(lv, "t0", lw).tolist(), _floats(lv, "t1", lw).tolist()
     g_stored, guard_stored = _floats(lv, "clearance_m", lw).tolist(), _floats(lv, "guard_m", lw).tolist()
@@ -330,7 +338,8 @@ def _read_claimed(tdoc: dict, k: int, given, rob, pins: VerifyPins):
     """Read the file of a trajectory claimed certified; returns it and its facts."""
     where = f"trajectories[{k}]"
     tid = str(_get(tdoc, "id", where))
-    mode = tdoc.get("velocities") or "recorded"
+    mode = tdoc.get("velocities")
+    mode = "recorded" if mode is None else mode  # null: the certificate's default; "" or false is no mode
     if mode not in VELOCITY_MODES:
         raise LarcInputError(f"{where}.velocities: {str(mode)[:40]!r} is not one of {', '.join(VELOCITY_MODES)}")
     pins.check_velocities(tid, mode)
@@ -379,15 +388,13 @@ def _report(est: dict, **more) -> VerifyReport:
 
 def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> VerifyReport:
     source = str(path)
-    try:
-        doc = json.loads(read_input_text(Path(path), "certificate"))
-    except json.JSONDecodeError as exc:
-        raise LarcInputError(f"{source}: not JSON ({exc.msg}, line {exc.lineno})") from None
+    doc = parse_json(read_input_text(Path(path), "certificate"), source)  # hostile JSON: one line, exit 2
     if not isinstance(doc, dict) or doc.get("format") != CERTIFICATE_FORMAT:
         raise LarcInputError(f"{source}: not a larc certificate (format {CERTIFICATE_FORMAT!r} expected)")
     if doc.get("version") != CERTIFICATE_VERSION:
         raise LarcInputError(f"{source}: unknown certificate version {doc.get('version')!r} (this checker reads "
                              f"version {CERTIFICATE_VERSION})")
+    check_certificate_fields(doc, source)
     params = _parameters(_get(doc, "parameters", source, dict))
     est["parameters"] = params
     traj_docs = _get(doc, "trajectories", source, list)

@@ -27,7 +27,7 @@ import re
 from pathlib import Path
 
 from .defaults import ENCLOSURES, VELOCITY_MODES, check_depth, check_margin
-from .errors import LarcInputError
+from .errors import LarcInputError, OneLineError
 
 __all__ = ["Refuted", "VerifyPins", "VerifyReport", "InputFile", "SceneFacts", "TrajectoryFacts", "RobotFacts",
            "Parameters", "report_lines", "report_json", "input_error_json"]
@@ -35,7 +35,7 @@ __all__ = ["Refuted", "VerifyPins", "VerifyReport", "InputFile", "SceneFacts", "
 DTYPES = ("float64", "float32")
 
 
-class Refuted(Exception):
+class Refuted(OneLineError):
     """The certificate's claim does not hold (the message names the trajectory, leaf, file or pin
     and why). ``report``: what the checker had established before (set by ``verify_certificate``)."""
 

@@ -199,7 +199,7 @@ def test_changed_mesh_on_disk_is_refuted(tmp_path, capsys):
 
 @pytest.mark.parametrize("content,why", [
     (None, "does not exist"),
-    ("{not json", "not JSON"),
+    ("{not json", "not valid JSON"),
     ('{"format": "something"}', "not a larc certificate"),
     ('{"format": "larc-certificate", "version": 99}', "unknown certificate version 99"),
     ('{"format": "larc-certificate", "version": 2}', "missing field 'parameters'"),
@@ -219,7 +219,7 @@ def test_bad_fields_and_files_exit_2(cli_cert, tmp_path, capsys):
     assert _verify(bad) == EXIT_BAD_INPUT
     assert "not a float.hex() number" in capsys.readouterr().err
     assert _verify(path, "--scene", str(tmp_path / "missing.yaml")) == EXIT_BAD_INPUT
-    assert "cannot read the scene file" in capsys.readouterr().err
+    assert "scene file does not exist" in capsys.readouterr().err
     assert _verify(path, "--trajectory", REACH) == EXIT_BAD_INPUT  # 1 file for 2 trajectories
     assert "2" in capsys.readouterr().err
 

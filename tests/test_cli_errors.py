@@ -369,21 +369,14 @@ def test_bad_input_one_line_exit_2(case, tmp_path, capsys):
 def test_unreadable_file(tmp_path, capsys, monkeypatch):
     """Permission denied (simulated: the tests may run as root, which reads anything)."""
     argv = _argv(Case("perm", ()), tmp_path)
-    real = Path.read_text
-    real_bytes = Path.read_bytes
+    real_open = os.open
 
-    def deny(self, *a, **k):
-        if self.name == "t.yaml":
-            raise PermissionError(13, "Permission denied", str(self))
-        return real(self, *a, **k)
+    def deny(path, *a, **k):  # every user file is opened by larc_jax.io.read_input_bytes
+        if Path(path).name == "t.yaml":
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, *a, **k)
 
-    def deny_bytes(self, *a, **k):
-        if self.name == "t.yaml":
-            raise PermissionError(13, "Permission denied", str(self))
-        return real_bytes(self, *a, **k)
-
-    monkeypatch.setattr(Path, "read_text", deny)
-    monkeypatch.setattr(Path, "read_bytes", deny_bytes)
+    monkeypatch.setattr(os, "open", deny)
     rc = main(argv)
     check_one_error_line(rc, capsys.readouterr().err, ("t.yaml", "ermission"))
     no_outputs(tmp_path)

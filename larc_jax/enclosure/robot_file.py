@@ -24,6 +24,11 @@ own link frames: they are used instead when the joints above the link are *state
 them. (A stroke capsule also contains its link placed anywhere by FK, since it holds the
 unshifted copy of every element; the stated capsule is just tighter.) ``hull_parts`` records how
 the hull stage splits links into parts (:mod:`larc_jax.enclosure.hull`).
+
+Fields. Any field the readers do not know, at the top or in a capsule or hull part, is an error
+naming it. Written for people and not read (documented as ignored): ``revision``,
+``gripper_opening_m``, ``held_prismatic_stroke_enclosed``, and a capsule's ``volume_m3`` and
+``hull_volume_m3``.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ import numpy as np
 import yaml
 
 from ..errors import GeometryChanged, LarcInputError
-from ..io import atomic_write_text, parse_number, parse_vector, parse_yaml, read_input_text, short_repr
+from ..io import atomic_write_text, check_keys, parse_number, parse_vector, parse_yaml, read_input_text, short_repr
 from ..robot import JointType, Robot
 from .capsule import CapsuleModel
 from .fit import FittedCapsule
@@ -111,6 +116,13 @@ def save_capsules(path: str | Path, robot: Robot, fitted: Sequence[FittedCapsule
         "# `geometry` records what the fit used; a changed mesh or URDF is refused at load.\n"
     )
     atomic_write_text(path, header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))
+
+
+_FILE_KEYS = ("urdf", "package_dirs", "urdf_sha256", "padding_m", "active_joints", "held_joints", "geometry",
+              "capsules", "stated_capsules", "hull_parts", "ignored_links")
+_FILE_IGNORED = ("revision", "gripper_opening_m", "held_prismatic_stroke_enclosed")
+_CAPSULE_KEYS = ("name", "link", "a", "b", "radius")
+_CAPSULE_IGNORED = ("volume_m3", "hull_volume_m3")
 
 
 def _field(doc: Mapping, key: str, source: str, where: str = ""):
@@ -192,6 +204,7 @@ def load_capsules(path: str | Path, robot: Robot) -> CapsuleModel:
     doc = parse_yaml(read_input_text(path, "capsule file"), source)
     if not isinstance(doc, dict):
         raise LarcInputError(f"{source}: expected a mapping with 'capsules'")
+    check_keys(doc, _FILE_KEYS, source, ignored=_FILE_IGNORED)
     if _field(doc, "urdf_sha256", source) != robot.urdf_sha256:
         raise GeometryChanged(
             f"{source}: fitted to a URDF with sha256 {short_repr(doc['urdf_sha256'])}, but {robot.urdf_path} "
@@ -278,6 +291,7 @@ def _parse_capsules(entries: list, key: str, source: str, robot: Robot, padding:
         where = f"{key}[{k}]"
         if not isinstance(e, dict):
             raise LarcInputError(f"{source}: {where} must be a mapping")
+        check_keys(e, _CAPSULE_KEYS, source, where, ignored=_CAPSULE_IGNORED)
         link = _field(e, "link", source, where + ".")
         if not isinstance(link, str):
             raise LarcInputError(f"{source}: {where}.link must be a link name, got {short_repr(link)}")
@@ -309,6 +323,7 @@ def _parse_hull_parts(value, source: str, robot: Robot) -> tuple:
             raise LarcInputError(f"{source}: {where}: '{link}' is not a link of {robot.urdf_path}")
         if not isinstance(plane, dict):
             raise LarcInputError(f"{source}: {where} must be a mapping {{normal: [x, y, z], offset: d}}")
+        check_keys(plane, ("normal", "offset"), source, where)
         normal = _vec3(_field(plane, "normal", source, where + "."), source, where + ".normal")
         offset = parse_number(_field(plane, "offset", source, where + "."), source, where + ".offset")
         if not np.isfinite(offset) or not np.linalg.norm(normal) > 0:
@@ -339,6 +354,8 @@ def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | 
     doc = parse_yaml(read_input_text(path, "robot file"), str(path))
     if doc is None:
         raise LarcInputError(f"{path}: robot file is empty")
+    if isinstance(doc, dict):
+        check_keys(doc, _FILE_KEYS, str(path), ignored=_FILE_IGNORED)
     if not isinstance(doc, dict) or "urdf" not in doc:
         raise LarcInputError(f"{path}: missing field 'urdf' (write it with `larc fit-capsules URDF -o FILE`; "
                              f"PIPER's shipped capsule file is used when no robot file is given)")
@@ -358,8 +375,7 @@ def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | 
     if not isinstance(held, dict):
         raise LarcInputError(f"{path}: held_joints must be a mapping JOINT: VALUE, got {short_repr(held)}")
     for name, value in held.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
-            raise LarcInputError(f"{path}: held_joints.{name} must be a finite number, got {short_repr(value)}")
+        parse_number(value, str(path), f"held_joints.{name}", finite=True)
     held = {j: v for j, v in held.items() if active_joints is None or j not in active_joints}
     robot = load_robot(urdf, dirs, active_joints=active_joints if active_joints is not None else active,
                        held_joint_values={**held, **hold}, stated_joints=list(hold))
