@@ -156,8 +156,11 @@ def _load_robot(doc: dict, robot_path, excluded: list[str]):
     _check_hash(_sha256(file, "robot file"), _get(doc, "sha256", where, str), f"robot file {file}")
     stated = {str(j): _float(v, f"{where}.stated_joints.{j}")
               for j, v in (_get(doc, "stated_joints", where, dict) or {}).items()}
+    active = _get(doc, "active_joints", where, list)
+    if not all(isinstance(j, str) for j in active):
+        raise LarcInputError(f"{where}.active_joints: expected a list of joint names")
     try:
-        robot, capsules = load_robot_file(path, hold=stated, active_joints=_get(doc, "active_joints", where, list))
+        robot, capsules = load_robot_file(path, hold=stated, active_joints=active)
     except GeometryChanged as exc:
         raise Refuted(f"robot: {exc}") from None
     _check_hash(robot.urdf_sha256, _get(doc, "urdf_sha256", where, str), f"URDF {robot.urdf_path}")
