@@ -10,6 +10,7 @@ Typical use::
     result = lj.certify(trajs, scene, robot, capsules)
     df = result.to_dataframe()
     lj.write_certificate("cert.json", result, trajs, scene, robot, capsules)  # re-check: lj.verify_certificate
+    lj.view("cert.json")                                      # see it in 3-D in the browser (viser)
 """
 
 import sys
@@ -25,7 +26,7 @@ __all__ = [
     "segment_box_distance", "segment_box_distances", "speed_max", "verify_containment",
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities", "enable_compile_cache",
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
-    "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport",
+    "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport", "view",
 ]
 
 _loaded = False
@@ -60,6 +61,7 @@ def _load() -> None:
     from .urdf import load_robot
     from .certificate import write_certificate
     from .verify import Refuted, VerifyPins, VerifyReport, verify_certificate  # last: it defers JAX, which is loaded by now
+    from .view import view  # NumPy; viser is imported when a view opens
     globals().update({k: v for k, v in locals().items() if k in __all__})
     _loaded = True
 

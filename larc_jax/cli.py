@@ -540,6 +540,12 @@ def _cmd_verify(args) -> int:
     return status
 
 
+def _cmd_view(args) -> int:
+    from .view import view_command  # NumPy and viser: this process never loads JAX
+
+    return view_command(args)
+
+
 def _output_options(in_subcommand: bool) -> argparse.ArgumentParser:
     """--quiet / --verbose / --progress / --compile-cache, accepted before and after the subcommand. In the
     subcommands their default is SUPPRESS, so a flag given before the subcommand survives."""
@@ -726,6 +732,18 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-o", "--output", metavar="OUT.png",
                    help="image to write (format from the suffix; default ID_explain.png)")
     e.set_defaults(func=_cmd_explain, method=METHODS[0])
+
+    w = sub.add_parser("view", parents=common, help="show a certificate in 3-D in the browser (viser)",
+                       description="Serve an interactive 3-D view (robot along the trajectory, boxes, leaf cover, "
+                                   "a leaf's enclosures) and print its URL; Ctrl-C stops it.")
+    w.add_argument("inputs", nargs="+", metavar="FILE", help="a certificate (larc certify --certificate), or "
+                   "trajectory files (then --scene)")
+    w.add_argument("--scene", help="scene file, with trajectory files")
+    w.add_argument("--robot", help="robot file, with trajectory files (default: PIPER)")
+    w.add_argument("--leaves", metavar="LEAVES.csv", help="leaf table of larc certify --leaves (CSV or Parquet)")
+    w.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1; 0.0.0.0: all)")
+    w.add_argument("--port", type=int, default=8080, help="port (default 8080; the next free one if taken)")
+    w.set_defaults(func=_cmd_view)
     return p
 
 

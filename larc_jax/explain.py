@@ -41,7 +41,8 @@ from .robot import Robot
 from .scene import Scene
 from .trajectory import Trajectory
 
-__all__ = ["Explanation", "choose_leaf", "describe_leaf", "explain", "render", "tool_capsules"]
+__all__ = ["Explanation", "choose_leaf", "describe_leaf", "explain", "render", "segment_box_closest_points",
+           "tool_capsules"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,7 +124,7 @@ def describe_leaf(result: TrajectoryResult, leaf: Leaf) -> str:
     return "tightest passed interval (smallest clearance)" if tightest else "passed interval"
 
 
-def _closest_points(p0, p1, lo, hi, iters: int = 200):
+def segment_box_closest_points(p0, p1, lo, hi, iters: int = 200):
     """Closest points between segment [p0, p1] and box [lo, hi]: ternary search on the convex
     function s -> dist(p(s), box) (exact up to the search tolerance; for drawing only)."""
 
@@ -160,7 +161,7 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
     c, k = int(ev.capsule), int(ev.box)
     closest, dist = None, math.nan
     if scene.n_boxes:
-        closest = _closest_points(ev.p_world_a[c], ev.p_world_b[c], scene.lo[k], scene.hi[k])
+        closest = segment_box_closest_points(ev.p_world_a[c], ev.p_world_b[c], scene.lo[k], scene.hi[k])
         dist = float(np.linalg.norm(closest[0] - closest[1]))
     else:
         c = k = -1

@@ -1,0 +1,174 @@
+"""larc view (viser): the scene it builds (meshes, boxes, leaf markers, a leaf's enclosures), the
+readers (certificate file, --leaves table), Ctrl-C, and a real headless Chromium loading the page.
+
+The browser test needs a `chromium` on PATH (.ci/run installs it) and skips without one. Its
+screenshot is kept only where ``LARC_VIEW_SCREENSHOT_OUT`` names a file (the README's picture)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from larc_jax.cli import EXIT_OK, main
+from larc_jax.geometry import segment_box_distance_np
+from larc_jax.view_data import (STAGE_COLOURS, leaf_detail, link_meshes, read_view_certificate, read_view_files,
+                                timeline_image)
+
+ROOT = Path(__file__).resolve().parent.parent
+EX = ROOT / "configs" / "examples"
+REACH, SWEEP, CELL = (str(EX / n) for n in ("reach_left.yaml", "sweep_front.yaml", "cell.yaml"))
+pytest.importorskip("viser", reason="larc view needs viser (pip install 'larc_jax[view]')")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def cert(tmp_path_factory):
+    """A certificate and leaf table of reach_left (certified) and sweep_front (not), NumPy reference."""
+    d = tmp_path_factory.mktemp("view")
+    path, leaves = d / "cert.json", d / "leaves.csv"
+    assert main(["certify", REACH, SWEEP, "--scene", CELL, "--method", "reference", "--max-depth", "5",
+                 "--enclosure", "capsules", "--certificate", str(path), "--leaves", str(leaves),
+                 "--no-fail-on-uncertified", "-q"]) == EXIT_OK
+    return path, leaves
+
+
+@pytest.fixture(scope="module")
+def viewer(cert):
+    from larc_jax.view import view
+
+    v = view(cert[0], port=_free_port(), block=False)
+    yield v
+    v.stop()
+
+
+def test_readers_agree(cert):
+    a = read_view_certificate(cert[0])
+    b = read_view_files([REACH, SWEEP], CELL, leaves=cert[1])
+    assert [it.traj.id for it in a.items] == [it.traj.id for it in b.items] == ["reach_left", "sweep_front"]
+    for x, y in zip(a.items, b.items):
+        for col in ("depth", "index", "t0", "t1", "certified", "capsule", "box", "other_capsule", "stage"):
+            np.testing.assert_array_equal(getattr(x.leaves, col), getattr(y.leaves, col), err_msg=col)
+        np.testing.assert_allclose(x.leaves.clearance_m, y.leaves.clearance_m, rtol=1e-12)
+    assert a.items[0].leaves.certified.all() and not a.items[1].leaves.certified.all()
+
+
+def test_scene_has_the_robot_boxes_and_leaves(viewer):
+    data = viewer.data
+    assert len(viewer.robot_handles) == len(link_meshes(data.robot)) > 0
+    assert len(viewer.box_handles) == data.items[0].scene.n_boxes == 3
+    (cloud,) = viewer.leaf_handles
+    assert len(cloud.points) == len(data.items[0].leaves)
+    C = data.capsules.n_capsules
+    assert len(viewer._leaf_nodes) == 2 * C + 2  # capsules, shells, the recorded box, closest points
+    viewer.show_trajectory(1)  # not certified: the first inconclusive leaf is shown
+    lv = data.items[1].leaves
+    assert viewer._leaf == int(np.flatnonzero(~lv.certified)[0])
+    assert "inconclusive" in viewer.info.content
+    t = viewer.time_slider.value
+    assert lv.t0[viewer._leaf] <= t <= lv.t1[viewer._leaf]  # the robot is shown at the leaf's midpoint
+    viewer.show_trajectory(0)
+
+
+def test_leaf_detail_closest_points_are_the_recorded_pair(viewer):
+    data = viewer.data
+    it = data.items[1]
+    j = int(np.flatnonzero(~it.leaves.certified)[0])
+    det = leaf_detail(data, it, j)
+    c, k = det.capsule, det.box
+    a, b = det.closest
+    d = segment_box_distance_np(det.seg_a[c], det.seg_b[c], it.scene.lo[k], it.scene.hi[k])
+    assert abs(np.linalg.norm(a - b) - d) < 1e-6
+    assert np.all(det.shell_radius > det.radius)
+    # the recorded clearance is the distance minus the shell (up to the guard)
+    assert abs((d - det.shell_radius[c]) - it.leaves.clearance_m[j]) < 1e-6
+
+
+def test_timeline_colours(viewer):
+    lv = viewer.data.items[1].leaves
+    img = timeline_image(lv, float(lv.t0[0]), float(lv.t1[-1]), width=400)
+    colours = {tuple(p) for p in img[10]}
+    assert STAGE_COLOURS["capsule"] in colours and STAGE_COLOURS["inconclusive"] in colours
+    j = int(np.flatnonzero(~lv.certified)[0])
+    x = int((0.5 * (lv.t0[j] + lv.t1[j]) - lv.t0[0]) / (lv.t1[-1] - lv.t0[0]) * 400)
+    assert tuple(img[10, x]) == STAGE_COLOURS["inconclusive"]
+
+
+def test_cli_prints_the_url_and_stops_on_ctrl_c(cert):
+    port = _free_port()
+    p = subprocess.Popen([sys.executable, "-m", "larc_jax.cli", "view", str(cert[0]), "--port", str(port)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        deadline = time.time() + 60
+        while "larc view: open" not in line and time.time() < deadline:
+            line = p.stdout.readline()
+            assert line or p.poll() is None, p.stderr.read()
+        assert f"http://127.0.0.1:{port}" in line
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    assert "Traceback" not in err
+
+
+def test_cli_bad_input_exits_2(tmp_path, capsys):
+    bad = tmp_path / "x.json"
+    bad.write_text("{}")
+    assert main(["view", str(bad)]) == 2
+    assert "not a larc certificate" in capsys.readouterr().err
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="no chromium on PATH (apt-get install chromium; .ci/run does)")
+def test_browser_shows_the_robot_and_the_boxes(viewer, tmp_path):
+    """Headless Chromium (software WebGL) loads the page; the screenshot shows the orange robot
+    and the blue boxes in the 3-D canvas. External hosts resolve to nothing: the client must be
+    served whole by viser."""
+    from PIL import Image
+
+    from larc_jax.view import BOX_RGB, ROBOT_RGB
+
+    viewer.show_trajectory(0)
+    shot = tmp_path / "view.png"
+    w, h = 1280, 800
+    subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu-sandbox", "--use-angle=swiftshader",
+                    "--enable-unsafe-swiftshader", "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
+                    f"--window-size={w},{h}", "--virtual-time-budget=8000", f"--screenshot={shot}",
+                    viewer.url], capture_output=True, timeout=120, check=False)
+    assert shot.is_file(), "chromium wrote no screenshot"
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    assert img.shape[:2] == (h, w)
+    assert img.std() > 10, "blank page"
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    orange = (r > 170) & (g > 70) & (g < 200) & (b < 110) & (r - b > 110)
+    blue = (b > 140) & (b - r > 70) & (b - g > 30)
+    canvas = np.zeros_like(orange)
+    canvas[150:, : w - 340] = True  # the 3-D view, left of the control panel, below the notice
+    assert ROBOT_RGB[0] - ROBOT_RGB[2] > 110 and BOX_RGB[2] - BOX_RGB[0] > 70  # the classes match the colours
+    assert (orange & canvas).sum() > 400, "no robot in the picture"
+    assert (blue & canvas).sum() > 400, "no obstacle in the picture"
+    ys, xs = np.nonzero(orange & canvas)
+    assert w * 0.2 < xs.mean() < w * 0.75 and h * 0.2 < ys.mean() < h * 0.8, "the robot is not in the middle"
+    out = os.environ.get("LARC_VIEW_SCREENSHOT_OUT")
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(shot, out)
