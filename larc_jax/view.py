@@ -14,9 +14,10 @@ package, nothing is fetched from the internet), the scene of one or more traject
 * for the selected leaf (leaf slider; default the first inconclusive leaf, else the tightest):
   the capsules at its midpoint with their inflation shells (radius + margin + motion radius b,
   recomputed by the float64 reference), the recorded pair in red (capsule and box, or the two
-  capsules of a self pair) and the segment joining its closest points.
+  capsules of a self pair) and the segment joining its closest points; for a leaf the hull test
+  passed, also the hull parts of the recorded link (teal; their few-mm padding and motion shells
+  are not drawn).
 
-The hull parts of a leaf the hull test passed are not drawn: its capsules and recorded pair are.
 :meth:`Viewer.run` blocks, stepping the animation, until Ctrl-C (then it stops the server and
 returns). Nothing here imports JAX.
 """
@@ -37,6 +38,7 @@ __all__ = ["Viewer", "view", "ROBOT_RGB", "BOX_RGB", "PAIR_RGB"]
 ROBOT_RGB = (255, 140, 0)
 BOX_RGB = (30, 90, 230)
 PAIR_RGB = (220, 20, 60)
+HULL_RGB = (0, 131, 143)
 _CAPSULE_RGB = (150, 160, 175)
 
 
@@ -189,6 +191,12 @@ class Viewer:
             nodes.append(sc.add_mesh_simple(f"/leaf/capsule{c}", v, f, color=rgb, opacity=0.55))
             v, f = _capsule_mesh(det.seg_a[c], det.seg_b[c], det.shell_radius[c])
             nodes.append(sc.add_mesh_simple(f"/leaf/shell{c}", v, f, color=rgb, opacity=0.12 if mine else 0.06))
+        for n, pts in enumerate(det.hull_parts):  # the hull test decided: its parts of the recorded link
+            import trimesh
+
+            hull = trimesh.convex.convex_hull(pts)
+            nodes.append(sc.add_mesh_simple(f"/leaf/hull{n}", np.asarray(hull.vertices, np.float32),
+                                            np.asarray(hull.faces, np.uint32), color=HULL_RGB, opacity=0.6))
         if 0 <= det.box < it.scene.n_boxes and det.other < 0:
             k = det.box
             nodes.append(sc.add_box("/leaf/box", color=PAIR_RGB, dimensions=tuple(it.scene.hi[k] - it.scene.lo[k]),

@@ -19,6 +19,7 @@ Nothing here imports JAX.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from pathlib import Path
 
@@ -31,16 +32,17 @@ import numpy as np  # noqa: E402
 from .certificate import CERTIFICATE_FORMAT, unhexf  # noqa: E402
 from .certificate_fields import check_certificate_fields  # noqa: E402
 from .enclosure.capsule import CapsuleModel  # noqa: E402
+from .enclosure.hull import HullModel  # noqa: E402
 from .enclosure.meshes import link_collisions, links_with_geometry  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
 from .errors import LarcInputError  # noqa: E402
 from .results import LEAF_COLUMNS, LeafTable  # noqa: E402
 from .explain import segment_box_closest_points  # noqa: E402
 from .interval import evaluate_interval_np, trajectory_rounding  # noqa: E402
+from .leaf_reference import leaf_enclosures  # noqa: E402
 from .io import parse_json, read_input_text  # noqa: E402
 from .robot import Robot, forward_kinematics_np  # noqa: E402
 from .scene import Scene, read_scene  # noqa: E402
-from .tracking import tracked_capsules  # noqa: E402
 from .trajectory import Trajectory  # noqa: E402
 from .trajectory_files import read_trajectory_file  # noqa: E402
 
@@ -74,12 +76,25 @@ class ViewItem:
 @dataclasses.dataclass(frozen=True)
 class ViewData:
     robot: Robot
-    capsules: CapsuleModel
-    """The capsules the leaf test used (grown by the tracking tolerance, if any)."""
+    planned: CapsuleModel
+    """The capsules as the robot file gives them (before the tracking tolerance)."""
     items: tuple[ViewItem, ...]
     margin_m: float
     self_margin_m: float | None
     source: str
+    enclosure: str = "capsules"
+    delta: np.ndarray | None = None
+    """Tracking tolerance per active joint (None: none)."""
+
+    @functools.cached_property
+    def capsules(self) -> CapsuleModel:
+        """The capsules the leaf test used (grown by the tracking tolerance, if any)."""
+        return leaf_enclosures(self.robot, self.planned, "capsules", self.delta).capsules
+
+    @functools.cached_property
+    def hulls(self) -> HullModel | None:
+        """The hull parts of the cascade (built on first use: seconds), or None without it."""
+        return leaf_enclosures(self.robot, self.planned, "hull", self.delta).hulls if self.enclosure == "hull" else None
 
 
 def _floats(values, where: str) -> np.ndarray:
@@ -117,8 +132,7 @@ def read_view_certificate(path) -> ViewData:
     if more:
         capsules = capsules.without_links(robot, more, what="certificate excluded_links:")
     tol = params.get("tracking_tolerance")
-    if tol:
-        capsules = tracked_capsules(capsules, np.array([unhexf(tol.get(j, "0x0p+0")) for j in robot.active_joint_names]))
+    delta = np.array([unhexf(tol.get(j, "0x0p+0")) for j in robot.active_joint_names]) if tol else None
     scenes = []
     for k, sdoc in enumerate(doc["scenes"]):
         if sdoc.get("file") is None:
@@ -133,7 +147,7 @@ def read_view_certificate(path) -> ViewData:
                                                                                      f"trajectories[{k}].leaves")))
     sc = params.get("self_collision")
     return ViewData(robot, capsules, tuple(items), unhexf(params["margin_m"]),
-                    None if sc is None else unhexf(sc["margin_m"]), source)
+                    None if sc is None else unhexf(sc["margin_m"]), source, str(params.get("enclosure")), delta)
 
 
 def _table_leaves(df, tid: str, capsules: CapsuleModel, scene: Scene, source: str) -> LeafTable | None:
@@ -161,10 +175,11 @@ def _table_leaves(df, tid: str, capsules: CapsuleModel, scene: Scene, source: st
 
 
 def read_view_files(trajectories, scene, robot_file=None, leaves=None, *, margin_m: float | None = None,
-                    velocities: str = "recorded") -> ViewData:
+                    velocities: str = "recorded", enclosure: str | None = None) -> ViewData:
     """Trajectory files, one scene file and the robot file (``None``: PIPER), as ``larc certify``
-    reads them; ``leaves``: its ``--leaves`` table (CSV or Parquet) for the leaf cover."""
-    from .defaults import DEFAULT_MARGIN_M
+    reads them (its defaults: margin, enclosure); ``leaves``: its ``--leaves`` table (CSV or
+    Parquet) for the leaf cover."""
+    from .defaults import DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M
 
     robot, capsules = load_robot_file(robot_file)
     sc = read_scene(scene, frame=robot.link_names[0])
@@ -183,7 +198,7 @@ def read_view_files(trajectories, scene, robot_file=None, leaves=None, *, margin
     items = tuple(ViewItem(t, sc, None if df is None else _table_leaves(df, t.id, capsules, sc, str(leaves)))
                   for t in trajs)
     return ViewData(robot, capsules, items, DEFAULT_MARGIN_M if margin_m is None else margin_m, None,
-                    str(leaves or trajectories[0]))
+                    str(leaves or trajectories[0]), enclosure or DEFAULT_ENCLOSURE)
 
 
 def _primitive_mesh(geom):
@@ -294,6 +309,9 @@ class LeafDetail:
     other: int
     closest: tuple[np.ndarray, np.ndarray] | None
     """Closest points (capsule axis, box or other axis) of the recorded pair."""
+    hull_parts: tuple[np.ndarray, ...] = ()
+    """Leaf passed by the hull test: the vertices (K, 3), base frame, of each hull part of the
+    recorded capsule's link at q(t_mid) (each part is their convex hull, padded by a few mm)."""
 
 
 def leaf_detail(data: ViewData, item: ViewItem, j: int) -> LeafDetail:
@@ -314,6 +332,12 @@ def leaf_detail(data: ViewData, item: ViewItem, j: int) -> LeafDetail:
     t_mid = float(ev.t_mid) + float(bounds.offset_s)
     if not math.isfinite(t_mid):
         t_mid = 0.5 * float(lv.t0[j] + lv.t1[j])
+    parts = ()
+    if lv.stage[j] == 2 and c >= 0 and data.hulls is not None:
+        hulls, link = data.hulls, caps.link_index[c]
+        T = forward_kinematics_np(data.robot, np.asarray(ev.q_mid, np.float64))
+        parts = tuple(np.asarray(hulls.vertices[p][: hulls.n_vertices[p]], float) @ T[link, :3, :3].T + T[link, :3, 3]
+                      for p in range(len(hulls.names)) if hulls.link_index[p] == link)
     return LeafDetail(t_mid=t_mid, seg_a=pa, seg_b=pb, radius=radius,
                       shell_radius=radius + margin + np.asarray(ev.motion_b, float), capsule=c, box=k, other=o,
-                      closest=closest)
+                      closest=closest, hull_parts=parts)

@@ -37,11 +37,12 @@ def _free_port() -> int:
 
 @pytest.fixture(scope="module")
 def cert(tmp_path_factory):
-    """A certificate and leaf table of reach_left (certified) and sweep_front (not), NumPy reference."""
+    """A certificate and leaf table of reach_left (certified) and sweep_front (not), NumPy reference,
+    hull cascade and self-collision test: leaves decided by the capsule, hull and self tests."""
     d = tmp_path_factory.mktemp("view")
     path, leaves = d / "cert.json", d / "leaves.csv"
     assert main(["certify", REACH, SWEEP, "--scene", CELL, "--method", "reference", "--max-depth", "5",
-                 "--enclosure", "capsules", "--certificate", str(path), "--leaves", str(leaves),
+                 "--self-collision", "--certificate", str(path), "--leaves", str(leaves),
                  "--no-fail-on-uncertified", "-q"]) == EXIT_OK
     return path, leaves
 
@@ -73,7 +74,13 @@ def test_scene_has_the_robot_boxes_and_leaves(viewer):
     (cloud,) = viewer.leaf_handles
     assert len(cloud.points) == len(data.items[0].leaves)
     C = data.capsules.n_capsules
+    lv0 = data.items[0].leaves
+    viewer.select_leaf(int(np.flatnonzero((lv0.stage == 1) & (lv0.box >= 0))[0]))  # capsule test, box pair
     assert len(viewer._leaf_nodes) == 2 * C + 2  # capsules, shells, the recorded box, closest points
+    j = int(np.flatnonzero(lv0.stage == 2)[0])  # the hull test decided: its parts of the recorded link are drawn
+    n_parts = len(leaf_detail(data, data.items[0], j).hull_parts)
+    viewer.select_leaf(j)
+    assert n_parts >= 1 and len(viewer._leaf_nodes) == 2 * C + n_parts + 2
     viewer.show_trajectory(1)  # not certified: the first inconclusive leaf is shown
     lv = data.items[1].leaves
     assert viewer._leaf == int(np.flatnonzero(~lv.certified)[0])
@@ -95,6 +102,36 @@ def test_leaf_detail_closest_points_are_the_recorded_pair(viewer):
     assert np.all(det.shell_radius > det.radius)
     # the recorded clearance is the distance minus the shell (up to the guard)
     assert abs((d - det.shell_radius[c]) - it.leaves.clearance_m[j]) < 1e-6
+
+
+def test_self_pair_and_hull_parts(viewer):
+    from larc_jax.self_collision import segment_segment_distance_np
+
+    data = viewer.data
+    it = data.items[0]
+    j = int(np.flatnonzero(it.leaves.other_capsule >= 0)[0])  # a recorded self-collision pair
+    det = leaf_detail(data, it, j)
+    c, o = det.capsule, det.other
+    d = segment_segment_distance_np(det.seg_a[c], det.seg_b[c], det.seg_a[o], det.seg_b[o])
+    assert abs(np.linalg.norm(det.closest[0] - det.closest[1]) - d) < 1e-6
+    j = int(np.flatnonzero(it.leaves.stage == 2)[0])
+    det = leaf_detail(data, it, j)
+    c = det.capsule
+    link = data.capsules.link_index[c]
+    parts = [p for p in range(len(data.hulls.names)) if data.hulls.link_index[p] == link]
+    assert len(det.hull_parts) == len(parts) >= 1
+    # the parts sit on the link: the capsule (which encloses the link) reaches every hull vertex
+    for pts in det.hull_parts:
+        a, b = det.seg_a[c], det.seg_b[c]
+        u = np.clip((pts - a) @ (b - a) / max((b - a) @ (b - a), 1e-300), 0, 1)
+        assert np.all(np.linalg.norm(pts - (a + u[:, None] * (b - a)), axis=1) < det.radius[c] + 0.01)
+
+
+def test_view_never_imports_jax(cert):
+    code = ("import sys; from larc_jax.view_data import read_view_certificate, leaf_detail; "
+            f"d = read_view_certificate({str(cert[0])!r}); leaf_detail(d, d.items[1], 0); "
+            "import larc_jax.view; assert 'jax' not in sys.modules, 'jax imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
 def test_timeline_colours(viewer):
