@@ -90,10 +90,14 @@ class RobotFacts:
     """(link, mesh URI or primitive, mesh SHA-256 or None) per collision element checked."""
     active_joints: tuple[str, ...]
     held_joints: tuple[tuple[str, float, bool], ...]
-    """(joint, value, stated): a stated joint's links are enclosed at the value alone, the others over their stroke."""
+    """(joint, value, stated): a stated joint's links are enclosed at the value alone, the others over their
+    stroke, except the :attr:`fixed_joints`."""
     capsules: int
     excluded_links: tuple[tuple[str, str], ...]
     """(link, ``robot file`` or ``certificate``): links not checked at all."""
+    fixed_joints: tuple[str, ...] = ()
+    """Held joints neither stated nor enclosed over a stroke (a revolute joint the robot file
+    holds): their links are placed at the held value alone, so the claim assumes they never move."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,9 +348,16 @@ def _parameter_lines(p: Parameters) -> list[str]:
 
 
 def _robot_lines(r: RobotFacts) -> list[str]:
-    held = ", ".join(f"{j} = {v!r} ({'stated' if s else 'not stated: its links enclosed over the stroke'})"
-                     for j, v, s in r.held_joints) or "none"
-    out = [f"  robot file: {_file_line(r.file)}", f"  URDF: {r.urdf} sha256 {r.urdf_sha256}",
+    def how(j: str, stated: bool) -> str:
+        if stated:
+            return "stated"
+        if j in r.fixed_joints:
+            return "held by the robot file: its links placed at this value alone, assumed never to move"
+        return "not stated: its links enclosed over the stroke"
+
+    held = ", ".join(f"{j} = {v!r} ({how(j, s)})" for j, v, s in r.held_joints) or "none"
+    out = [f"  robot file: {_file_line(r.file)}", f"  URDF: {r.urdf} sha256 {r.urdf_sha256} (assumed to describe the real robot: nothing "
+           "checks that; the robot file's hash, --robot-sha256, binds this URDF and every mesh)",
            f"  active joints: {', '.join(r.active_joints)}; held joints: {held}; {r.capsules} capsules",
            "  excluded links (not checked at all): " + (", ".join(f"{x} (by the {w})" for x, w in r.excluded_links)
                                                          or "none")]

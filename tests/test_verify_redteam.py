@@ -1,0 +1,72 @@
+"""Attacks on ``larc verify`` by someone who writes the certificate and the files (issue 18,
+red team): each test is a hole that was found, now closed.
+
+* A certificate whose ``excluded_links`` or self-collision ``skip`` list holds a non-name reached
+  the pins' report join as a traceback (exit 3): it is bad input (exit 2).
+* A robot file that holds a *revolute* joint (the arm with joint6 held at 0): the report said its
+  links were "enclosed over the stroke", which only a held prismatic finger is; the claim in fact
+  assumes the joint never moves, and the report must say so.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from larc_jax.certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION, hexf
+from larc_jax.enclosure.robot_file import default_capsule_path
+from larc_jax.errors import LarcInputError
+from larc_jax.verify import verify_certificate
+from larc_jax.verify_report import report_lines
+
+
+def _bare_certificate(tmp_path: Path, **parameters) -> Path:
+    doc = {"format": CERTIFICATE_FORMAT, "version": CERTIFICATE_VERSION, "trajectories": [],
+           "parameters": {"margin_m": hexf(0.01), "max_depth": 4, "dtype": "float64", "enclosure": "capsules",
+                          "excluded_links": [], **parameters}}
+    path = tmp_path / "bare.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize("parameters,pin,where", [
+    ({"excluded_links": [1]}, {"no_excluded_links": True}, r"parameters\.excluded_links\[0\]"),
+    ({"self_collision": {"margin_m": hexf(0.01), "skip": [{"a": 1}]}}, {"no_self_skip": True},
+     r"parameters\.self_collision\.skip\[0\]"),
+])
+def test_a_list_of_names_holding_a_non_name_is_bad_input(tmp_path, parameters, pin, where):
+    with pytest.raises(LarcInputError, match=where):
+        verify_certificate(_bare_certificate(tmp_path, **parameters), **pin)
+
+
+def test_a_held_revolute_joint_is_reported_as_assumed_fixed(tmp_path, piper_dir):
+    """The robot file makes joint6 a held joint: the certificate is true only while joint6 stays
+    at 0, and the VERIFIED report must say that rather than call it enclosed over a stroke."""
+    import larc_jax as lj
+    from larc_jax.enclosure.robot_file import load_robot_file
+
+    doc = yaml.safe_load(default_capsule_path().read_text())
+    doc = {"urdf": str(piper_dir / "urdf" / "piper_description.urdf"),
+           "package_dirs": {"piper_description": str(piper_dir)}, **doc}
+    doc["active_joints"] = [f"joint{j}" for j in range(1, 6)]
+    doc["held_joints"] = {"joint6": 0.0, **doc["held_joints"]}
+    robot_file = tmp_path / "arm5.yaml"
+    robot_file.write_text(yaml.safe_dump(doc, sort_keys=False))
+    traj_file, scene_file = tmp_path / "still.yaml", tmp_path / "empty.yaml"
+    traj_file.write_text(yaml.safe_dump({"joint_names": doc["active_joints"], "points": [
+        {"positions": [0.5, 1.0, -1.0, 0.0, 0.5], "velocities": [0.0] * 5, "time_from_start": {"sec": k, "nanosec": 0}}
+        for k in range(2)]}))
+    scene_file.write_text("frame: base_link\nboxes: []\n")
+    robot, capsules = load_robot_file(robot_file)
+    traj, scene = lj.read_trajectory(traj_file, robot), lj.read_scene(scene_file)
+    result = lj.certify([traj], scene, robot, capsules, max_depth=2, method="reference")
+    cert = lj.write_certificate(tmp_path / "arm5.json", result, [traj], scene, robot, capsules,
+                                robot_file=str(robot_file), trajectory_files=[traj_file], scene_files=[scene_file])
+    report = verify_certificate(cert)
+    assert report.refuted is None and report.robot.fixed_joints == ("joint6",)
+    held = next(line for line in report_lines(report) if "held joints:" in line)
+    assert "joint6 = 0.0 (held by the robot file: its links placed at this value alone, assumed never to move)" in held
+    assert "joint7 = 0.0 (not stated: its links enclosed over the stroke)" in held
