@@ -371,7 +371,10 @@ def _read_claimed(tdoc: dict, k: int, given, rob, pins: VerifyPins):
                       "describes (--allow-finite-difference accepts it)")
     arrays = _get(tdoc, "arrays_sha256", where, str)
     _check_hash(trajectory_sha256(traj), arrays, f"trajectory '{tid}' ({tpath})")
-    return traj, TrajectoryFacts(id=tid, claimed=True, scene=_get(tdoc, "scene", where, int), velocities=mode,
+    scene = _get(tdoc, "scene", where, int)
+    if isinstance(scene, bool):  # JSON true/false would index scene 1/0 and be reported as "scene True"
+        raise LarcInputError(f"{where}.scene: expected a scene index, got {scene!r}")
+    return traj, TrajectoryFacts(id=tid, claimed=True, scene=scene, velocities=mode,
                                  file=file, arrays_sha256=arrays, ignored_velocities=ignored)
 
 

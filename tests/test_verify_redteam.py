@@ -6,6 +6,8 @@ red team): each test is a hole that was found, now closed.
 * A robot file that holds a *revolute* joint (the arm with joint6 held at 0): the report said its
   links were "enclosed over the stroke", which only a held prismatic finger is; the claim in fact
   assumes the joint never moves, and the report must say so.
+* A claimed trajectory's ``scene`` of JSON ``false`` / ``true`` was taken as index 0 / 1 and
+  printed as "scene False": a scene index is an integer, not a boolean.
 """
 
 from __future__ import annotations
@@ -42,20 +44,22 @@ def test_a_list_of_names_holding_a_non_name_is_bad_input(tmp_path, parameters, p
         verify_certificate(_bare_certificate(tmp_path, **parameters), **pin)
 
 
-def test_a_held_revolute_joint_is_reported_as_assumed_fixed(tmp_path, piper_dir):
-    """The robot file makes joint6 a held joint: the certificate is true only while joint6 stays
-    at 0, and the VERIFIED report must say that rather than call it enclosed over a stroke."""
+@pytest.fixture(scope="module")
+def arm5(tmp_path_factory, piper_dir) -> Path:
+    """A certificate (NumPy reference) made with a robot file that holds joint6 at 0: a still
+    5-joint trajectory in an empty scene."""
     import larc_jax as lj
     from larc_jax.enclosure.robot_file import load_robot_file
 
+    tmp = tmp_path_factory.mktemp("arm5")
     doc = yaml.safe_load(default_capsule_path().read_text())
     doc = {"urdf": str(piper_dir / "urdf" / "piper_description.urdf"),
            "package_dirs": {"piper_description": str(piper_dir)}, **doc}
     doc["active_joints"] = [f"joint{j}" for j in range(1, 6)]
     doc["held_joints"] = {"joint6": 0.0, **doc["held_joints"]}
-    robot_file = tmp_path / "arm5.yaml"
+    robot_file = tmp / "arm5.yaml"
     robot_file.write_text(yaml.safe_dump(doc, sort_keys=False))
-    traj_file, scene_file = tmp_path / "still.yaml", tmp_path / "empty.yaml"
+    traj_file, scene_file = tmp / "still.yaml", tmp / "empty.yaml"
     traj_file.write_text(yaml.safe_dump({"joint_names": doc["active_joints"], "points": [
         {"positions": [0.5, 1.0, -1.0, 0.0, 0.5], "velocities": [0.0] * 5, "time_from_start": {"sec": k, "nanosec": 0}}
         for k in range(2)]}))
@@ -63,10 +67,25 @@ def test_a_held_revolute_joint_is_reported_as_assumed_fixed(tmp_path, piper_dir)
     robot, capsules = load_robot_file(robot_file)
     traj, scene = lj.read_trajectory(traj_file, robot), lj.read_scene(scene_file)
     result = lj.certify([traj], scene, robot, capsules, max_depth=2, method="reference")
-    cert = lj.write_certificate(tmp_path / "arm5.json", result, [traj], scene, robot, capsules,
+    return lj.write_certificate(tmp / "arm5.json", result, [traj], scene, robot, capsules,
                                 robot_file=str(robot_file), trajectory_files=[traj_file], scene_files=[scene_file])
-    report = verify_certificate(cert)
+
+
+def test_a_held_revolute_joint_is_reported_as_assumed_fixed(arm5):
+    """The robot file makes joint6 a held joint: the certificate is true only while joint6 stays
+    at 0, and the VERIFIED report must say that rather than call it enclosed over a stroke."""
+    report = verify_certificate(arm5)
     assert report.refuted is None and report.robot.fixed_joints == ("joint6",)
     held = next(line for line in report_lines(report) if "held joints:" in line)
     assert "joint6 = 0.0 (held by the robot file: its links placed at this value alone, assumed never to move)" in held
     assert "joint7 = 0.0 (not stated: its links enclosed over the stroke)" in held
+
+
+def test_a_boolean_scene_index_is_bad_input(arm5, tmp_path):
+    """JSON false indexed scene 0 (true: scene 1) and the report printed "scene False"."""
+    doc = json.loads(arm5.read_text())
+    doc["trajectories"][0]["scene"] = False
+    path = tmp_path / "bool_scene.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(LarcInputError, match=r"trajectories\[0\]\.scene: expected a scene index"):
+        verify_certificate(path)
