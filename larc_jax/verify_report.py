@@ -27,7 +27,7 @@ import re
 from pathlib import Path
 
 from .defaults import ENCLOSURES, VELOCITY_MODES, check_depth, check_margin
-from .errors import LarcInputError, OneLineError
+from .errors import LarcInputError, OneLineError, one_line
 
 __all__ = ["Refuted", "VerifyPins", "VerifyReport", "InputFile", "SceneFacts", "TrajectoryFacts", "RobotFacts",
            "Parameters", "report_lines", "report_json", "input_error_json"]
@@ -366,7 +366,7 @@ def _robot_lines(r: RobotFacts) -> list[str]:
 
 
 def _trajectory_line(t: TrajectoryFacts, scenes: dict[int, SceneFacts]) -> str:
-    head = f"  trajectory '{t.id}'"
+    head = f"  trajectory {t.id!r}"  # quoted as Python does: an id cannot close its quote and mimic the report
     if not t.claimed:
         return f"{head}: not claimed certified (not checked)"
     if t.file is None:
@@ -404,7 +404,9 @@ def report_lines(report: VerifyReport) -> list[str]:
     out += [_trajectory_line(t, scenes) for t in report.trajectory_files]
     out.append("  pins: " + (", ".join(report.pins) + (" (held)" if report.refuted is None else "")
                              if report.pins else "none"))
-    return out
+    # ids, the method, names and paths come from the files: a newline there would print a line of
+    # the certificate's choosing (a pin "held", a file "given by the caller")
+    return [one_line(line) for line in out]
 
 
 def _jsonable(x):

@@ -89,3 +89,17 @@ def test_a_boolean_scene_index_is_bad_input(arm5, tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(LarcInputError, match=r"trajectories\[0\]\.scene: expected a scene index"):
         verify_certificate(path)
+
+
+def test_a_newline_in_an_id_or_the_method_cannot_add_report_lines(arm5, tmp_path):
+    """The trajectory id and the method are the certificate's text: they verify (labels are not
+    trusted), but must not print lines of their own, such as a pin "held"."""
+    doc = json.loads(arm5.read_text())
+    doc["trajectories"][0]["id"] = "still'\n  pins: --robot-sha256 " + "0" * 64 + " (held)"
+    doc["parameters"]["method"] = "larc\n  pins: --no-stated-joints (held)"
+    path = tmp_path / "injected.json"
+    path.write_text(json.dumps(doc))
+    lines = report_lines(verify_certificate(path))
+    assert all("\n" not in line for line in lines)
+    assert [line for line in lines if line.lstrip().startswith("pins:")] == ["  pins: none"]
+    assert any("trajectory \"still'\\n  pins: --robot-sha256" in line for line in lines)
