@@ -350,7 +350,7 @@ def _parameter_lines(p: Parameters) -> list[str]:
 def _robot_lines(r: RobotFacts) -> list[str]:
     def how(j: str, stated: bool) -> str:
         if stated:
-            return "stated"
+            return "stated: certified at this value alone, an assumption about the real joint"
         if j in r.fixed_joints:
             return "held by the robot file: its links placed at this value alone, assumed never to move"
         return "not stated: its links enclosed over the stroke"
