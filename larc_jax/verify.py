@@ -444,6 +444,7 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
     for k, (tdoc, given) in enumerate(zip(traj_docs, files)):
         where = f"trajectories[{k}]"
         if _get(tdoc, "certified", where, bool) is not True:  # no claim, nothing to check
+            pins.check_claimed(str(_get(tdoc, "id", where)))
             est["trajectory_files"].append(TrajectoryFacts(id=str(_get(tdoc, "id", where)), claimed=False,
                                                            scene=tdoc.get("scene"),
                                                            velocities=tdoc.get("velocities") or "recorded"))

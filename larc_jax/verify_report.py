@@ -183,6 +183,9 @@ class VerifyPins:
     """No held joint stated (the gripper enclosed over its whole stroke, valid at any opening)."""
     robot_sha256: str | None = None
     """The robot file's bytes have this SHA-256 (it records the URDF's and every mesh's)."""
+    all_certified: bool = False
+    """Every trajectory the certificate names is claimed certified (so re-checked): a trajectory
+    marked not certified is otherwise skipped, and its file, even one supplied, is not read."""
     require_files: bool = False
     """Every scene and trajectory claimed certified is a file the caller supplied or one the
     certificate names with its file hash (not bound by its arrays alone)."""
@@ -303,6 +306,11 @@ class VerifyPins:
             self._refute("require_files", f"{what} {f.path} is named by the certificate without its file hash "
                                           "(bound by its arrays alone)")
 
+    def check_claimed(self, tid: str) -> None:
+        """A trajectory the certificate does not claim certified."""
+        if self.all_certified:
+            self._refute("all_certified", f"trajectory {tid!r} is not claimed certified (not checked)")
+
     def check_velocities(self, tid: str, mode: str) -> None:
         if self.velocities is not None and mode != self.velocities:
             self._refute("velocities", f"trajectory '{tid}' was certified with {mode} velocities")
@@ -313,6 +321,7 @@ _BOOL_HELP = {
     "no_stated_joints": "no held joint stated (the gripper certified at any opening, not at one stated with --hold)",
     "self_collision": "self-collision certified",
     "no_self_skip": "self-collision certified without user-skipped link pairs",
+    "all_certified": "every trajectory of the certificate claimed certified (one marked not certified is not checked)",
     "require_files": "every scene and trajectory checked is a file given here or one the certificate names with "
                      "its file hash",
     "allow_finite_difference": "accept a trajectory certified with finite-difference velocities although its file "

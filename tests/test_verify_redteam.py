@@ -21,7 +21,7 @@ import yaml
 from larc_jax.certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION, hexf
 from larc_jax.enclosure.robot_file import default_capsule_path
 from larc_jax.errors import LarcInputError
-from larc_jax.verify import verify_certificate
+from larc_jax.verify import Refuted, verify_certificate
 from larc_jax.verify_report import report_lines
 
 
@@ -103,3 +103,16 @@ def test_a_newline_in_an_id_or_the_method_cannot_add_report_lines(arm5, tmp_path
     assert all("\n" not in line for line in lines)
     assert [line for line in lines if line.lstrip().startswith("pins:")] == ["  pins: none"]
     assert any("trajectory \"still'\\n  pins: --robot-sha256" in line for line in lines)
+
+
+def test_a_trajectory_not_claimed_certified_can_be_pinned(arm5, tmp_path):
+    """A certificate that marks its trajectory not certified verifies (it claims nothing, exit 0)
+    even with the file supplied, which is then not even read: --all-certified refuses it."""
+    doc = json.loads(arm5.read_text())
+    doc["trajectories"][0]["certified"] = False
+    path = tmp_path / "unclaimed.json"
+    path.write_text(json.dumps(doc))
+    assert verify_certificate(path).checked == 0
+    with pytest.raises(Refuted, match="pin --all-certified: trajectory 'still' is not claimed certified"):
+        verify_certificate(path, all_certified=True)
+    assert verify_certificate(arm5, all_certified=True).checked == 1
