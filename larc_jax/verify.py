@@ -129,6 +129,16 @@ def _ints(doc, key, where: str) -> np.ndarray:
     return np.array(values, np.int64)
 
 
+def _names(doc, key, where: str) -> tuple[str, ...]:
+    """A list of names (links, ``LINK:LINK`` pairs): anything else would reach the pins' and
+    the report's joins as a traceback (exit 3)."""
+    values = _get(doc, key, where, list)
+    bad = next((i for i, v in enumerate(values) if not isinstance(v, str)), None)
+    if bad is not None:
+        raise LarcInputError(f"{where}.{key}[{bad}]: expected a name, got {short_repr(values[bad], 40)}")
+    return tuple(values)
+
+
 def _override(given, n: int, what: str) -> list:
     if not given:
         return [None] * n
@@ -300,12 +310,12 @@ def _parameters(params: dict) -> Parameters:
     sc = params.get("self_collision")
     return Parameters(
         method=params.get("method"), margin_m=margin, max_depth=max_depth, dtype=dtype, enclosure=enclosure,
-        excluded_links=tuple(_get(params, "excluded_links", "parameters", list)),
+        excluded_links=_names(params, "excluded_links", "parameters"),
         tracking_tolerance=None if tol is None else tuple(
             (str(j), _float(v, f"parameters.tracking_tolerance.{j}")) for j, v in tol.items()),
         self_margin_m=None if sc is None else _float(_get(sc, "margin_m", "parameters.self_collision"),
                                                      "parameters.self_collision.margin_m"),
-        self_skip=() if sc is None else tuple(_get(sc, "skip", "parameters.self_collision", list)))
+        self_skip=() if sc is None else _names(sc, "skip", "parameters.self_collision"))
 
 
 def _check_ids(docs: list) -> None:
@@ -333,6 +343,7 @@ def _robot_facts(doc: dict, given, rob, capsules, cert_excluded) -> RobotFacts:
         file=InputFile(str(path), source, _sha256(path, "robot file"), doc.get("sha256")), urdf=str(rob.urdf_path),
         urdf_sha256=rob.urdf_sha256, geometry=geometry, active_joints=tuple(rob.active_joint_names), held_joints=held,
         capsules=int(capsules.n_capsules),
+        fixed_joints=tuple(j for j, _, stated in held if not stated and j not in rob.stroke_joints),
         excluded_links=tuple((x, "certificate" if x in cert_excluded else "robot file")
                              for x in capsules.excluded_links))
 
@@ -360,7 +371,10 @@ def _read_claimed(tdoc: dict, k: int, given, rob, pins: VerifyPins):
                       "describes (--allow-finite-difference accepts it)")
     arrays = _get(tdoc, "arrays_sha256", where, str)
     _check_hash(trajectory_sha256(traj), arrays, f"trajectory '{tid}' ({tpath})")
-    return traj, TrajectoryFacts(id=tid, claimed=True, scene=_get(tdoc, "scene", where, int), velocities=mode,
+    scene = _get(tdoc, "scene", where, int)
+    if isinstance(scene, bool):  # JSON true/false would index scene 1/0 and be reported as "scene True"
+        raise LarcInputError(f"{where}.scene: expected a scene index, got {scene!r}")
+    return traj, TrajectoryFacts(id=tid, claimed=True, scene=scene, velocities=mode,
                                  file=file, arrays_sha256=arrays, ignored_velocities=ignored)
 
 
@@ -430,6 +444,7 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
     for k, (tdoc, given) in enumerate(zip(traj_docs, files)):
         where = f"trajectories[{k}]"
         if _get(tdoc, "certified", where, bool) is not True:  # no claim, nothing to check
+            pins.check_claimed(str(_get(tdoc, "id", where)))
             est["trajectory_files"].append(TrajectoryFacts(id=str(_get(tdoc, "id", where)), claimed=False,
                                                            scene=tdoc.get("scene"),
                                                            velocities=tdoc.get("velocities") or "recorded"))

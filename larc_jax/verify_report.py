@@ -27,7 +27,7 @@ import re
 from pathlib import Path
 
 from .defaults import ENCLOSURES, VELOCITY_MODES, check_depth, check_margin
-from .errors import LarcInputError, OneLineError
+from .errors import LarcInputError, OneLineError, one_line
 
 __all__ = ["Refuted", "VerifyPins", "VerifyReport", "InputFile", "SceneFacts", "TrajectoryFacts", "RobotFacts",
            "Parameters", "report_lines", "report_json", "input_error_json"]
@@ -90,10 +90,14 @@ class RobotFacts:
     """(link, mesh URI or primitive, mesh SHA-256 or None) per collision element checked."""
     active_joints: tuple[str, ...]
     held_joints: tuple[tuple[str, float, bool], ...]
-    """(joint, value, stated): a stated joint's links are enclosed at the value alone, the others over their stroke."""
+    """(joint, value, stated): a stated joint's links are enclosed at the value alone, the others over their
+    stroke, except the :attr:`fixed_joints`."""
     capsules: int
     excluded_links: tuple[tuple[str, str], ...]
     """(link, ``robot file`` or ``certificate``): links not checked at all."""
+    fixed_joints: tuple[str, ...] = ()
+    """Held joints neither stated nor enclosed over a stroke (a revolute joint the robot file
+    holds): their links are placed at the held value alone, so the claim assumes they never move."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,6 +183,9 @@ class VerifyPins:
     """No held joint stated (the gripper enclosed over its whole stroke, valid at any opening)."""
     robot_sha256: str | None = None
     """The robot file's bytes have this SHA-256 (it records the URDF's and every mesh's)."""
+    all_certified: bool = False
+    """Every trajectory the certificate names is claimed certified (so re-checked): a trajectory
+    marked not certified is otherwise skipped, and its file, even one supplied, is not read."""
     require_files: bool = False
     """Every scene and trajectory claimed certified is a file the caller supplied or one the
     certificate names with its file hash (not bound by its arrays alone)."""
@@ -299,6 +306,11 @@ class VerifyPins:
             self._refute("require_files", f"{what} {f.path} is named by the certificate without its file hash "
                                           "(bound by its arrays alone)")
 
+    def check_claimed(self, tid: str) -> None:
+        """A trajectory the certificate does not claim certified."""
+        if self.all_certified:
+            self._refute("all_certified", f"trajectory {tid!r} is not claimed certified (not checked)")
+
     def check_velocities(self, tid: str, mode: str) -> None:
         if self.velocities is not None and mode != self.velocities:
             self._refute("velocities", f"trajectory '{tid}' was certified with {mode} velocities")
@@ -309,6 +321,7 @@ _BOOL_HELP = {
     "no_stated_joints": "no held joint stated (the gripper certified at any opening, not at one stated with --hold)",
     "self_collision": "self-collision certified",
     "no_self_skip": "self-collision certified without user-skipped link pairs",
+    "all_certified": "every trajectory of the certificate claimed certified (one marked not certified is not checked)",
     "require_files": "every scene and trajectory checked is a file given here or one the certificate names with "
                      "its file hash",
     "allow_finite_difference": "accept a trajectory certified with finite-difference velocities although its file "
@@ -344,9 +357,16 @@ def _parameter_lines(p: Parameters) -> list[str]:
 
 
 def _robot_lines(r: RobotFacts) -> list[str]:
-    held = ", ".join(f"{j} = {v!r} ({'stated' if s else 'not stated: its links enclosed over the stroke'})"
-                     for j, v, s in r.held_joints) or "none"
-    out = [f"  robot file: {_file_line(r.file)}", f"  URDF: {r.urdf} sha256 {r.urdf_sha256}",
+    def how(j: str, stated: bool) -> str:
+        if stated:
+            return "stated: certified at this value alone, an assumption about the real joint"
+        if j in r.fixed_joints:
+            return "held by the robot file: its links placed at this value alone, assumed never to move"
+        return "not stated: its links enclosed over the stroke"
+
+    held = ", ".join(f"{j} = {v!r} ({how(j, s)})" for j, v, s in r.held_joints) or "none"
+    out = [f"  robot file: {_file_line(r.file)}", f"  URDF: {r.urdf} sha256 {r.urdf_sha256} (assumed to describe the real robot: nothing "
+           "checks that; the robot file's hash, --robot-sha256, binds this URDF and every mesh)",
            f"  active joints: {', '.join(r.active_joints)}; held joints: {held}; {r.capsules} capsules",
            "  excluded links (not checked at all): " + (", ".join(f"{x} (by the {w})" for x, w in r.excluded_links)
                                                          or "none")]
@@ -355,7 +375,7 @@ def _robot_lines(r: RobotFacts) -> list[str]:
 
 
 def _trajectory_line(t: TrajectoryFacts, scenes: dict[int, SceneFacts]) -> str:
-    head = f"  trajectory '{t.id}'"
+    head = f"  trajectory {t.id!r}"  # quoted as Python does: an id cannot close its quote and mimic the report
     if not t.claimed:
         return f"{head}: not claimed certified (not checked)"
     if t.file is None:
@@ -393,7 +413,9 @@ def report_lines(report: VerifyReport) -> list[str]:
     out += [_trajectory_line(t, scenes) for t in report.trajectory_files]
     out.append("  pins: " + (", ".join(report.pins) + (" (held)" if report.refuted is None else "")
                              if report.pins else "none"))
-    return out
+    # ids, the method, names and paths come from the files: a newline there would print a line of
+    # the certificate's choosing (a pin "held", a file "given by the caller")
+    return [one_line(line) for line in out]
 
 
 def _jsonable(x):
