@@ -27,6 +27,7 @@ __all__ = [
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities", "enable_compile_cache",
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
     "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport", "view",
+    "RunSpec",
 ]
 
 _loaded = False
@@ -54,6 +55,7 @@ def _load() -> None:
     from .interval import IntervalEval, evaluate_interval, interval_clearance
     from .results import DatasetResult, Leaf, LeafTable, TrajectoryResult
     from .robot import JointType, Robot, forward_kinematics
+    from .run_spec import RunSpec
     from .scene import Scene, read_moveit_scene, read_scene
     from .stream import certify_stream
     from .trajectory import Trajectory, finite_difference_velocities

@@ -30,8 +30,7 @@ import numpy as np
 
 from .batch import MAX_BATCH_TRAJECTORIES, Batch, dyadic_ends, prepare
 from .compilation import CompileClock
-from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS,
-                       check_depth, check_enclosure, check_margin)
+from .defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS
 from .enclosure.capsule import CapsuleModel
 from .enclosure.hull import HullModel
 from .enclosure.meshes import held_joint_states
@@ -41,6 +40,7 @@ from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np
 from .interval import geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
 from .robot import Robot
+from .run_spec import RunSpec
 from .scene import Scene
 from .self_collision import SelfPairs, curve_ranges, load_separation, self_pairs
 from .tracking import check_tracking_tolerance
@@ -53,6 +53,16 @@ __all__ = [
     "DEFAULT_MAX_DEPTH",
     "DEFAULT_COARSE_DEPTH",
 ]
+
+
+class _Default:
+    """The value of a keyword argument of ``certify`` not given: the RunSpec's default."""
+
+    def __repr__(self) -> str:
+        return "<RunSpec default>"
+
+
+_DEFAULT = _Default()
 
 
 class Method(str, enum.Enum):
@@ -175,8 +185,43 @@ def _items(value, kind, what: str) -> list:
     return list(value)
 
 
-def _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress):
-    """Everything ``certify`` is given, checked as the command line checks it (LarcInputError)."""
+def _run_spec(spec, options: dict) -> RunSpec:
+    """``spec``, or the RunSpec the keyword arguments give (those not given: its defaults)."""
+    given = {k: v for k, v in options.items() if v is not _DEFAULT}
+    if spec is not None:
+        if not isinstance(spec, RunSpec):
+            raise LarcInputError(f"certify: spec must be a RunSpec (larc_jax.RunSpec), got {type(spec).__name__}")
+        if given:
+            raise LarcInputError(f"certify: give either spec or its keyword arguments, not both "
+                                 f"(got spec and {', '.join(sorted(given))})")
+        return spec
+    method = given.get("method", METHODS[0])
+    try:
+        given["method"] = Method(method).value
+    except (ValueError, TypeError):
+        raise LarcInputError(f"certify: unknown method {short_repr(method)} ({', '.join(METHODS)})") from None
+    try:
+        return RunSpec(**given)
+    except LarcInputError as exc:
+        raise LarcInputError(f"certify: {exc}") from None
+
+
+def _model_spec(spec: RunSpec, robot: Robot, capsules: CapsuleModel) -> RunSpec:
+    """``spec`` with its model fields (stated joints, active joints, links left out) those of
+    ``robot`` and ``capsules``; a spec that states others is refused (it was meant for another model)."""
+    hold = tuple(sorted((robot.joint_names[i], float(robot.q_held[i])) for i in range(robot.n_links)
+                        if robot.joint_names[i] in robot.stated_joints))
+    model = dict(hold=hold, joints=tuple(robot.active_joint_names), ignore_links=tuple(capsules.excluded_links))
+    for key, value in model.items():
+        stated = getattr(spec, key)
+        if stated and (stated != value if key == "joints" else not set(stated) <= set(value)):
+            raise LarcInputError(f"certify: spec.{key} {list(stated)} is not the model's {list(value)} (load the "
+                                 "robot file with them, or leave the field empty)")
+    return dataclasses.replace(spec, **model)
+
+
+def _check_inputs(trajectories, scenes, robot, capsules, dtype, progress):
+    """Everything ``certify`` is given beyond the run spec, checked as the command line checks it."""
     trajectories = _items(trajectories, Trajectory, "trajectories")
     if not trajectories:
         raise LarcInputError("certify: no trajectories given")
@@ -194,9 +239,6 @@ def _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coar
             or any(not 0 <= i < robot.n_links or robot.link_names[i] != name
                    for i, name in zip(capsules.link_index, capsules.link_names))):
         raise LarcInputError("certify: the capsule model was built for another robot (load_capsules(path, robot))")
-    margin = check_margin(margin, "certify: margin")
-    max_depth = check_depth(max_depth, "certify: max_depth")
-    coarse_depth = check_depth(coarse_depth, "certify: coarse_depth")
     dtype = geometry_dtype(dtype)
     if progress is not None and not callable(progress):
         raise LarcInputError(f"certify: progress must be a function of the interval count, got {short_repr(progress)}")
@@ -206,7 +248,7 @@ def _check_inputs(trajectories, scenes, robot, capsules, margin, max_depth, coar
         if s.frame and s.frame != root:
             raise LarcInputError(f"{s.source or s.name or 'Scene'}: frame '{s.frame}' is not the robot base frame "
                                  f"'{root}'")
-    return trajectories, scenes, margin, max_depth, coarse_depth, dtype
+    return trajectories, scenes, dtype
 
 
 def certify(
@@ -215,24 +257,28 @@ def certify(
     robot: Robot,
     capsules: CapsuleModel,
     *,
-    method: Method | str = Method.LARC,
-    margin: float = DEFAULT_MARGIN_M,
-    max_depth: int = DEFAULT_MAX_DEPTH,
-    coarse_depth: int = DEFAULT_COARSE_DEPTH,
-    dtype=np.float64,
+    spec: RunSpec | None = None,
+    method: Method | str = _DEFAULT,
+    margin: float = _DEFAULT,
+    max_depth: int = _DEFAULT,
+    coarse_depth: int = _DEFAULT,
+    dtype=_DEFAULT,
     progress: Callable[[int], None] | None = None,
     devices=None,
     on_compile: Callable[[bool], None] | None = None,
-    enclosure: str = DEFAULT_ENCLOSURE,
+    enclosure: str = _DEFAULT,
     hulls: HullModel | None = None,
-    tracking_tolerance=None,
-    self_collision: bool = False,
-    self_margin: float = 0.0,
-    self_skip=(),
+    tracking_tolerance=_DEFAULT,
+    self_collision: bool = _DEFAULT,
+    self_margin: float = _DEFAULT,
+    self_skip=_DEFAULT,
 ) -> DatasetResult:
     """Certify trajectories against their scenes in one call.
 
     Args:
+      spec: the run's parameters as one :class:`~larc_jax.run_spec.RunSpec` (the result carries it,
+        ``result.spec``). The keyword arguments below that it holds (``method`` ... ``self_skip``,
+        defaults those of :class:`RunSpec`) are a convenience that builds one; giving both is an error.
       trajectories: one or many (each may have its own waypoint count and duration).
       scenes: one scene for all, or one per trajectory.
       method: ``larc`` (batched adaptive), ``fine`` (all ``2**max_depth`` intervals),
@@ -269,27 +315,23 @@ def certify(
     excludes (:meth:`CapsuleModel.without_links`) are named in the result. JAX computations run
     with 64-bit types enabled only inside this call (scoped, not global).
     """
-    try:
-        method = Method(method)
-    except (ValueError, TypeError):
-        raise LarcInputError(f"certify: unknown method {short_repr(method)} ({', '.join(METHODS)})") from None
-    trajectories, scenes, margin, max_depth, coarse_depth, dtype = _check_inputs(
-        trajectories, scenes, robot, capsules, margin, max_depth, coarse_depth, dtype, progress)
-    delta = check_tracking_tolerance(tracking_tolerance, robot)
-    if not isinstance(self_collision, bool):
-        raise LarcInputError(f"certify: self_collision must be True or False, got {short_repr(self_collision)}")
-    pairs = self_pairs(robot, capsules, self_margin, self_skip, proven=load_separation(robot)) if self_collision else None
+    spec = _run_spec(spec, dict(method=method, margin_m=margin, max_depth=max_depth, coarse_depth=coarse_depth,
+                                dtype=dtype, enclosure=enclosure, tracking_tolerance=tracking_tolerance,
+                                self_collision=self_collision, self_margin_m=self_margin, self_skip=self_skip))
+    method, margin, max_depth, enclosure = Method(spec.method), spec.margin_m, spec.max_depth, spec.enclosure
+    trajectories, scenes, dtype = _check_inputs(trajectories, scenes, robot, capsules, spec.dtype, progress)
+    spec = _model_spec(spec, robot, capsules)
+    delta = check_tracking_tolerance(spec.tolerance_arg(), robot)
+    pairs = self_pairs(robot, capsules, spec.self_margin_m, spec.self_skip, proven=load_separation(robot)) \
+        if spec.self_collision else None
     check_pairs = pairs if pairs is not None and pairs.n_pairs else None
     skips = None
     if check_pairs is not None:  # pairs proven apart where each trajectory's curve goes
         skips = [check_pairs.skip_mask(*curve_ranges(t, delta)) for t in trajectories]
-    check_enclosure(enclosure, "certify: enclosure")
     enc = leaf_enclosures(robot, capsules, enclosure, delta, hulls)  # radii grown by sum_j a_lj delta_j
     planned_capsules, capsules, hulls = capsules, enc.capsules, enc.hulls
     start = time.perf_counter()
     names = _Names(scenes)
-    if method == Method.REFERENCE:
-        dtype = np.float64  # the reference is NumPy float64
     bounds = [trajectory_rounding(t, robot, capsules, dtype, hulls) for t in trajectories]
     with CompileClock() as clock:
         if method == Method.REFERENCE:
@@ -309,7 +351,7 @@ def certify(
                 if method == Method.LARC:
                     f, lv = _larc_batched(batch, n_part, part, max_depth, progress, on_compile)
                 else:
-                    depth = max_depth if method == Method.FINE else coarse_depth
+                    depth = max_depth if method == Method.FINE else spec.coarse_depth
                     f, lv = _fixed(batch, n_part, part, depth, max_depth, progress, on_compile)
                 del batch
                 frontiers.append(f)
@@ -320,7 +362,7 @@ def certify(
     result = _dataset_result(method.value, trajectories, scenes, names, planned_capsules, frontier, leaves, bounds,
                              float(margin), max_depth, wall, compile_time_s=min(wall, clock.seconds),
                              dtype=np.dtype(dtype).name)
-    result = dataclasses.replace(result, enclosure=enclosure, held_joints=held_joint_states(robot))
+    result = dataclasses.replace(result, enclosure=enclosure, held_joints=held_joint_states(robot), spec=spec)
     if delta is not None:
         result = dataclasses.replace(result, tracking_tolerance=tuple(
             (name, float(x)) for name, x in zip(robot.active_joint_names, delta)))

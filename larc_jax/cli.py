@@ -24,8 +24,8 @@ import traceback
 import warnings
 from pathlib import Path
 
-from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH,
-                       DEFAULT_PADDING_M, ENCLOSURES, METHODS, VELOCITY_MODES, check_depth, check_margin)
+from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH,
+                       DEFAULT_PADDING_M, ENCLOSURES, METHODS, VELOCITY_MODES)
 from .errors import LarcInputError, OneLineError
 from .report import format_clearance, leaves_bytes, result_json, table_lines
 from .verify_report import VerifyPins
@@ -288,22 +288,21 @@ def _compile_cache(args) -> None:
         log.warning("compilation cache %s unusable (%s); compiling without it", folder, exc.strerror or exc)
 
 
-def _certify_with_progress(args, trajectories, scene, robot, capsules):
+def _certify_with_progress(args, spec, trajectories, scene, robot, capsules):
     """Certify with a progress bar that says "compiling" while JAX compiles a kernel shape."""
     from .certify import certify
     from .compilation import CompileClock
 
     n = len(trajectories)
-    total = {"fine": n * 2**args.max_depth, "coarse": n * 2**DEFAULT_COARSE_DEPTH}.get(args.method)
-    desc = f"certifying ({args.method})"
+    total = {"fine": n * 2**spec.max_depth, "coarse": n * 2**spec.coarse_depth}.get(spec.method)
+    desc = f"certifying ({spec.method})"
     with _progress_bar(args, total=total, desc=desc, unit=" intervals") as bar:
         def on_compile(starting: bool) -> None:
             bar.set_description_str("compiling kernels" if starting else desc)
 
         with CompileClock() as clock:
-            result = certify(trajectories, scene, robot, capsules, method=args.method, margin=args.margin,
-                             max_depth=args.max_depth, enclosure=args.enclosure, progress=lambda k: bar.update(k),
-                             on_compile=on_compile, **_certificate_options(args, robot))
+            result = certify(trajectories, scene, robot, capsules, spec=spec, progress=lambda k: bar.update(k),
+                             on_compile=on_compile)
     log.debug("kernels: %d compiled or loaded, %d of them from the persistent cache; tracing %.2f s, lowering "
               "%.2f s, XLA compile or cache load %.2f s", clock.compiles, clock.cache_hits, clock.trace_s,
               clock.lower_s, clock.compile_s)
@@ -312,21 +311,33 @@ def _certify_with_progress(args, trajectories, scene, robot, capsules):
     return result
 
 
-def _certificate_options(args, robot) -> dict:
-    """What ``certify`` takes beyond the margin and depth: --self-collision (--self-margin,
-    --self-skip) and --tracking-tolerance (checked here so a bad value names the option)."""
-    from .tracking import check_tracking_tolerance, parse_tracking_tolerance
+_SPEC_OPTIONS = {"margin_m": "--margin", "max_depth": "--max-depth", "tracking_tolerance": "--tracking-tolerance",
+                 "self_margin_m": "--self-margin", "self_skip": "--self-skip", "ignore_links": "--ignore-link",
+                 "hold": "--hold", "joints": "--joints"}
 
-    out = {}
-    if getattr(args, "self_collision", False):
-        out.update(self_collision=True, self_margin=0.0 if args.self_margin is None else args.self_margin,
-                   self_skip=tuple(args.self_skip or ()))
-    elif getattr(args, "self_skip", None) or getattr(args, "self_margin", None) is not None:
+
+def _certificate_options(args):
+    """The run's :class:`~larc_jax.run_spec.RunSpec` from the certify / explain options: validated
+    once, before any file is read or JAX is loaded; a bad value names its option."""
+    from .run_spec import RunSpec, parse_tracking_tolerance
+
+    self_collision = bool(getattr(args, "self_collision", False))
+    self_margin, self_skip = getattr(args, "self_margin", None), tuple(getattr(args, "self_skip", None) or ())
+    if not self_collision and (self_skip or self_margin is not None):
         raise LarcInputError("--self-margin and --self-skip need --self-collision")
-    if getattr(args, "tracking_tolerance", None) is not None:
-        out["tracking_tolerance"] = check_tracking_tolerance(
-            parse_tracking_tolerance(args.tracking_tolerance), robot, "--tracking-tolerance")
-    return out
+    tolerance = getattr(args, "tracking_tolerance", None)
+    try:
+        return RunSpec(method=args.method, margin_m=args.margin, max_depth=args.max_depth, enclosure=args.enclosure,
+                       velocities=args.velocities, self_collision=self_collision,
+                       self_margin_m=0.0 if self_margin is None else self_margin, self_skip=self_skip,
+                       tracking_tolerance=None if tolerance is None else parse_tracking_tolerance(tolerance),
+                       hold=_hold(args), joints=tuple(_joints(args) or ()),
+                       ignore_links=tuple(getattr(args, "ignore_link", None) or ()))
+    except LarcInputError as exc:
+        field = next((f for f in _SPEC_OPTIONS if str(exc).startswith(f)), None)
+        if field is None:
+            raise
+        raise LarcInputError(_SPEC_OPTIONS[field] + str(exc)[len(field):]) from None
 
 
 def _capsules_without(args, robot, capsules):
@@ -338,13 +349,14 @@ def _capsules_without(args, robot, capsules):
     return capsules
 
 
-def _check_certify_options(args, outputs=()) -> None:
-    """--margin, --max-depth and the output paths, checked before any file is read."""
-    check_margin(args.margin, "--margin")
-    check_depth(args.max_depth, "--max-depth")
+def _check_certify_options(args, outputs=()):
+    """The run spec (:func:`_certificate_options`) and the output paths, checked before any file
+    is read; returns the spec."""
+    spec = _certificate_options(args)
     for option, out in outputs:
         if out and Path(out).is_dir():
             raise LarcInputError(f"{option} {out}: is a directory, expected a file name to write")
+    return spec
 
 
 def _cmd_certify(args) -> int:
@@ -358,30 +370,22 @@ def _cmd_certify(args) -> int:
     for option in ("out", "dask"):
         if getattr(args, option):
             raise LarcInputError(f"--{option} needs --manifest")
-    if args.tracking_tolerance is not None:
-        from .tracking import parse_tracking_tolerance
-
-        parse_tracking_tolerance(args.tracking_tolerance)  # a malformed value fails before the work
-    if args.self_margin is not None:
-        from .self_collision import check_self_margin
-
-        check_self_margin(args.self_margin, "--self-margin")
     if not args.trajectories:
         raise LarcInputError("certify needs trajectory files (TRAJ_FILE ...) or --manifest FILE.csv")
     if not args.scene:
         raise LarcInputError("certify needs --scene FILE (or --manifest FILE.csv, whose rows name the scenes)")
-    _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves),
-                                  ("--certificate", args.certificate)))
+    spec = _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves),
+                                         ("--certificate", args.certificate)))
     leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
     timer = _PhaseTimer()
-    robot, capsules = load_robot_file(args.robot, hold=_hold(args), active_joints=_joints(args))
+    robot, capsules = load_robot_file(args.robot, hold=dict(spec.hold), active_joints=list(spec.joints) or None)
     capsules = _capsules_without(args, robot, capsules)
     timer.lap("robot")
     scene = read_scene(args.scene, frame=robot.link_names[0])
     log.debug("scene %s: %d boxes", args.scene, scene.n_boxes)
     trajectories = _read_trajectories(args, args.trajectories, robot)
     timer.lap("read")
-    result = _certify_with_progress(args, trajectories, scene, robot, capsules)
+    result = _certify_with_progress(args, spec, trajectories, scene, robot, capsules)
     timer.lap("certify")
     timer.log(result)
     if not args.quiet:
@@ -396,7 +400,7 @@ def _cmd_certify(args) -> int:
         from .certificate import write_certificate
 
         write_certificate(args.certificate, result, trajectories, scene, robot, capsules, robot_file=args.robot,
-                          trajectory_files=args.trajectories, scene_files=[args.scene], velocities=args.velocities)
+                          trajectory_files=args.trajectories, scene_files=[args.scene], velocities=spec.velocities)
         log.info("wrote %s (certificate of %d trajectories; check it with `larc verify %s`)", args.certificate,
                  len(result), args.certificate)
     if all(r.certified for r in result):
@@ -409,7 +413,7 @@ def _cmd_certify(args) -> int:
 
 def _certify_manifest(args) -> int:
     """``larc certify --manifest``: chunks into a resumable Parquet dataset (larc_jax.manifest)."""
-    from .manifest import ManifestJob, certify_chunk, pending_chunks
+    from .manifest import ManifestJob, certify_manifest
 
     if args.trajectories or args.scene:
         raise LarcInputError("--manifest takes the trajectories and scenes from its rows: "
@@ -418,20 +422,12 @@ def _certify_manifest(args) -> int:
         raise LarcInputError("--json is not available with --manifest (the results go to --out)")
     if args.certificate:
         raise LarcInputError("--certificate is not available with --manifest")
-    for option in ("tracking_tolerance", "self_collision"):
-        if getattr(args, option):
-            raise LarcInputError(f"--{option.replace('_', '-')} is not available with --manifest yet (certify the "
-                                 "files directly)")
     if not args.out:
         raise LarcInputError("--manifest needs --out RESULTS.parquet (a folder of Parquet parts)")
-    _check_certify_options(args)
-    job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, method=args.method,
-                      margin_m=args.margin, max_depth=args.max_depth, velocities=args.velocities,
-                      chunk_size=args.chunk_size, ignore_links=tuple(args.ignore_link or ()),
-                      enclosure=args.enclosure, hold=tuple(sorted(_hold(args).items())),
-                      joints=tuple(_joints(args) or ()))
+    spec = _check_certify_options(args)
+    job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, spec=spec, chunk_size=args.chunk_size)
     rows_done = [0]
-    with _progress_bar(args, desc=f"certifying ({args.method})", unit=" intervals") as bar:
+    with _progress_bar(args, desc=f"certifying ({spec.method})", unit=" intervals") as bar:
 
         def on_chunk(summary: dict) -> None:
             if args.dask:  # workers cannot report intervals as they go: count per chunk
@@ -446,14 +442,7 @@ def _certify_manifest(args) -> int:
 
             total = certify_manifest_dask(args.manifest, job, args.dask, on_chunk=on_chunk)
         else:
-            from .manifest import add_summary, new_total
-
-            todo, skipped = pending_chunks(args.manifest, job)
-            total = new_total(skipped)
-            for k, rows in todo:
-                summary = certify_chunk(job, k, rows, progress=bar.update)
-                add_summary(total, summary)
-                on_chunk(summary)
+            total = certify_manifest(args.manifest, job, on_chunk=on_chunk, progress=bar.update)
     import pandas as pd
 
     parts = sorted(Path(args.out).glob("part-*.parquet"))
@@ -461,7 +450,7 @@ def _certify_manifest(args) -> int:
         pd.DataFrame({"certified": [], "error": []})
     n, n_ok, n_err = len(results), int(results["certified"].sum()), int((results["error"] != "").sum())
     if not args.quiet:
-        print(f"{n_ok} of {n} certified, {n_err} bad input ({args.method}, margin {args.margin * 1000:g} mm); "
+        print(f"{n_ok} of {n} certified, {n_err} bad input ({spec.method}, margin {spec.margin_m * 1000:g} mm); "
               f"{total['chunks_done']} chunks now, {total['chunks_skipped']} already done; results in {args.out}"
               + (f", leaves in {args.leaves}" if args.leaves else ""))
     if n_err:
@@ -489,13 +478,13 @@ def _cmd_explain(args) -> int:
     from .scene import read_scene
 
     out = Path(args.output) if args.output else None
-    _check_certify_options(args, (("--output", args.output),))
+    spec = _check_certify_options(args, (("--output", args.output),))
     _check_image_path(out or Path("x.png"))  # fail before the work
-    robot, capsules = load_robot_file(args.robot, hold=_hold(args), active_joints=_joints(args))
+    robot, capsules = load_robot_file(args.robot, hold=dict(spec.hold), active_joints=list(spec.joints) or None)
     capsules = _capsules_without(args, robot, capsules)
     scene = read_scene(args.scene, frame=robot.link_names[0])
     (traj,) = _read_trajectories(args, [args.trajectory], robot)
-    result = _certify_with_progress(args, [traj], scene, robot, capsules)[0]
+    result = _certify_with_progress(args, spec, [traj], scene, robot, capsules)[0]
     leaf = choose_leaf(result, args.leaf, at=args.at)
     ex = explain(robot, capsules, traj, scene, result, leaf=leaf)
     out = out or Path(f"{result.id}_explain.png")

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 from .errors import LarcInputError
-from .manifest import ManifestJob, add_summary, certify_chunk, new_total, pending_chunks
+from .manifest import ManifestJob, certify_chunk, certify_manifest
 
 __all__ = ["certify_manifest_dask"]
 
@@ -44,31 +44,26 @@ def certify_manifest_dask(manifest: str | Path, job: ManifestJob, scheduler,
     """Certify every pending chunk of ``manifest`` on a Dask cluster.
 
     ``scheduler`` is a scheduler address (``tcp://host:8786``) or a ``dask.distributed.Client``.
-    Returns the same summary as :func:`larc_jax.manifest.certify_manifest`.
+    Returns the same summary as :func:`larc_jax.manifest.certify_manifest`, whose loop this runs
+    (the cluster is reached only after the results folder's state was checked).
     """
-    from dask.distributed import as_completed
 
-    todo, skipped = pending_chunks(manifest, job)
-    client, owned = _client(scheduler)
-    try:
-        workers = max(1, len(client.scheduler_info().get("workers", {})))
-        limit = max_in_flight or 4 * workers
-        total = new_total(skipped)
-        running = as_completed()
-        for k, rows in todo:
-            running.add(client.submit(certify_chunk, job, k, rows, pure=False))
-            while running.count() >= limit:
-                _collect(next(running), total, on_chunk)
-        for future in running:
-            _collect(future, total, on_chunk)
-        return total
-    finally:
-        if owned:
-            client.close()
+    def on_dask(job: ManifestJob, todo):
+        from dask.distributed import as_completed
 
+        client, owned = _client(scheduler)
+        try:
+            workers = max(1, len(client.scheduler_info().get("workers", {})))
+            limit = max_in_flight or 4 * workers
+            running = as_completed()
+            for k, rows in todo:
+                running.add(client.submit(certify_chunk, job, k, rows, pure=False))
+                while running.count() >= limit:
+                    yield next(running).result()  # a worker's exception is re-raised here
+            for future in running:
+                yield future.result()
+        finally:
+            if owned:
+                client.close()
 
-def _collect(future, total: dict, on_chunk) -> None:
-    summary = future.result()  # a worker's exception is re-raised here
-    add_summary(total, summary)
-    if on_chunk:
-        on_chunk(summary)
+    return certify_manifest(manifest, job, on_chunk, runner=on_dask)

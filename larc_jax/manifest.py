@@ -9,11 +9,11 @@ results folder (and, with ``leaves``, into the leaves folder) — each a Parquet
 
 Resuming. Every part is written atomically (a temporary file, then a rename), the leaves part
 before the results part, so a results part exists only when its chunk is complete. A rerun
-with the same manifest (same SHA-256), robot, parameters and chunk size skips the chunks whose
+with the same manifest (same SHA-256), robot, run spec (:class:`~larc_jax.run_spec.RunSpec`) and chunk size skips the chunks whose
 results part exists and computes the rest: a killed run loses at most the chunks in flight and
 never duplicates a row. A rerun with anything different is refused (naming what differs)
 rather than mixing results. The state (``_larc_manifest.json`` in the results folder) records
-all of it.
+all of it, the spec as :meth:`~larc_jax.run_spec.RunSpec.to_dict` writes it.
 
 Bad rows. A row whose trajectory or scene file is missing or invalid does not stop the run:
 its result row has ``certified = False`` and the one-line message in ``error``; the command
@@ -41,10 +41,10 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS, VELOCITY_MODES,
-                       check_depth, check_enclosure, check_margin)
+from .defaults import DEFAULT_CHUNK_SIZE
 from .errors import LarcInputError
 from .io import atomic_write_bytes, atomic_write_json, check_keys, read_input_text
+from .run_spec import RunSpec
 from .stream import chunked
 
 __all__ = [
@@ -133,27 +133,14 @@ class ManifestJob:
     """Leaves dataset folder, or None."""
     robot_file: str | None
     """Robot file (``larc fit-capsules``), or None for PIPER."""
-    method: str = METHODS[0]
-    margin_m: float = DEFAULT_MARGIN_M
-    max_depth: int = DEFAULT_MAX_DEPTH
-    velocities: str = VELOCITY_MODES[0]
+    spec: RunSpec = RunSpec()
+    """The run's parameters (validated when built); its model fields (``hold``, ``joints``,
+    ``ignore_links``) say how the robot file is loaded."""
     chunk_size: int = DEFAULT_CHUNK_SIZE
-    ignore_links: tuple[str, ...] = ()
-    """Links left out of the certificate (``--ignore-link``; only links that never move)."""
-    enclosure: str = DEFAULT_ENCLOSURE
-    hold: tuple[tuple[str, float], ...] = ()
-    """Stated values of held joints (``--hold``), as sorted (joint, value) pairs."""
-    joints: tuple[str, ...] = ()
-    """The active joints (``--joints``); empty: the robot file's."""
 
     def check(self) -> None:
-        check_margin(self.margin_m, "margin")
-        check_enclosure(self.enclosure, "enclosure")
-        check_depth(self.max_depth, "max_depth")
-        if self.method not in METHODS:
-            raise LarcInputError(f"method {self.method!r}: one of {METHODS}")
-        if self.velocities not in VELOCITY_MODES:
-            raise LarcInputError(f"velocities {self.velocities!r}: one of {VELOCITY_MODES}")
+        if not isinstance(self.spec, RunSpec):
+            raise LarcInputError(f"ManifestJob.spec must be a RunSpec, got {type(self.spec).__name__}")
         if isinstance(self.chunk_size, bool) or not isinstance(self.chunk_size, int) or self.chunk_size < 1:
             raise LarcInputError(f"chunk size {self.chunk_size!r}: must be an integer >= 1")
 
@@ -175,7 +162,7 @@ def _load_model(job: ManifestJob):
     if job.robot_file is not None:
         st = os.stat(job.robot_file)
         stamp = (st.st_size, st.st_mtime_ns)
-    return _model(job.robot_file, stamp, tuple(job.hold), tuple(job.joints))
+    return _model(job.robot_file, stamp, job.spec.hold, job.spec.joints)
 
 
 def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
@@ -192,7 +179,8 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     from .trajectory_files import read_trajectory
 
     robot, capsules = _load_model(job)
-    capsules = capsules.without_links(robot, job.ignore_links, what="--ignore-link")
+    spec = job.spec
+    capsules = capsules.without_links(robot, spec.ignore_links, what="--ignore-link")
     scenes: dict[Path, object] = {}
     good, errors = [], {}
     items = []
@@ -200,7 +188,7 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
         try:
             if r.scene not in scenes:
                 scenes[r.scene] = read_scene(r.scene, frame=robot.link_names[0])
-            traj = read_trajectory(r.trajectory, robot, velocities=job.velocities)
+            traj = read_trajectory(r.trajectory, robot, velocities=spec.velocities)
             items.append((dataclasses.replace(traj, id=r.id), scenes[r.scene]))
             good.append(r)
         except LarcInputError as exc:
@@ -208,8 +196,7 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     frame = None
     leaves_frame = None
     if items:
-        res = certify([t for t, _ in items], [s for _, s in items], robot, capsules, method=job.method,
-                      margin=job.margin_m, max_depth=job.max_depth, progress=progress, enclosure=job.enclosure)
+        res = certify([t for t, _ in items], [s for _, s in items], robot, capsules, spec=spec, progress=progress)
         frame = res.to_dataframe()
         frame.insert(0, "row", np.array([r.row for r in good], np.int64))
         frame["trajectory"] = [str(r.trajectory) for r in good]
@@ -226,10 +213,8 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     })
     out = pd.concat([f for f in (frame, bad_frame) if f is not None and len(f)], ignore_index=True) \
         if (frame is not None and len(frame)) or len(bad_frame) else bad_frame
-    out["method"] = job.method
-    out["enclosure"] = job.enclosure
-    out["margin_m"] = job.margin_m
-    out["max_depth"] = job.max_depth
+    for col in ("method", "enclosure", "margin_m", "max_depth"):
+        out[col] = getattr(spec, col)
     out["error"] = [errors.get(int(r), "") for r in out["row"]]
     for col, fill in (("guard_m", np.nan), ("blocked_t0", np.nan), ("blocked_t1", np.nan), ("blocked_capsule", ""),
                       ("blocked_box", "")):
@@ -263,12 +248,21 @@ def _state(job: ManifestJob, manifest: Path) -> dict:
         robot_sha = _sha256_file(default_capsule_path())
     return {
         "manifest": str(manifest.resolve()), "manifest_sha256": _sha256_file(manifest),
-        "robot_file": job.robot_file, "robot_sha256": robot_sha, "method": job.method,
-        "margin_m": job.margin_m, "max_depth": job.max_depth, "velocities": job.velocities,
-        "chunk_size": job.chunk_size, "leaves": job.leaves is not None,
-        "enclosure": job.enclosure, "hold": [list(p) for p in job.hold], "joints": list(job.joints),
-        **({"ignore_links": list(job.ignore_links)} if job.ignore_links else {}),
+        "robot_file": job.robot_file, "robot_sha256": robot_sha, "chunk_size": job.chunk_size,
+        "leaves": job.leaves is not None, "spec": job.spec.to_dict(),
     }
+
+
+def _differences(old: dict, state: dict) -> list[str]:
+    """What a results folder's state ``old`` says differently from ``state`` (spec fields by name)."""
+    diff = sorted(k for k in state if old.get(k) != state[k] and k not in ("manifest", "spec"))
+    if old.get("spec") != state["spec"]:
+        try:
+            diff += [f"spec.{k}" for k in RunSpec.from_dict(old.get("spec"), STATE_FILE).differences(
+                RunSpec.from_dict(state["spec"]))]
+        except LarcInputError:  # a state written before run specs, or edited by hand
+            diff.append("spec")
+    return diff
 
 
 def pending_chunks(manifest: str | Path, job: ManifestJob) -> tuple[Iterator[tuple[int, list[ManifestRow]]], int]:
@@ -288,7 +282,7 @@ def pending_chunks(manifest: str | Path, job: ManifestJob) -> tuple[Iterator[tup
     state_path = out / STATE_FILE
     if state_path.exists():
         old = json.loads(state_path.read_text())
-        diff = sorted(k for k in state if old.get(k) != state[k] and k != "manifest")
+        diff = _differences(old, state)
         if diff:
             raise LarcInputError(
                 f"{out}: holds results for another run (different {', '.join(diff)}); remove the folder "
@@ -311,18 +305,24 @@ def pending_chunks(manifest: str | Path, job: ManifestJob) -> tuple[Iterator[tup
     return todo(), len(done)
 
 
-def certify_manifest(manifest: str | Path, job: ManifestJob,
-                     on_chunk: Callable[[dict], None] | None = None) -> dict:
-    """Certify every pending chunk of ``manifest`` in this process (module docstring).
+def certify_manifest(manifest: str | Path, job: ManifestJob, on_chunk: Callable[[dict], None] | None = None,
+                     progress: Callable[[int], None] | None = None, runner=None) -> dict:
+    """Certify every pending chunk of ``manifest`` (module docstring): the one manifest loop.
+
+    ``runner(job, todo)`` certifies the pending chunks ``todo`` (an iterator of ``(k, rows)``) and
+    yields their summaries as they finish (default: one after the other in this process, with
+    ``progress`` called with interval counts as for :func:`~larc_jax.certify.certify`;
+    :mod:`larc_jax.distributed` passes one that runs them on Dask). It is called only after the
+    results folder's state was checked. ``on_chunk`` gets each chunk's summary.
 
     Returns ``{rows, certified, errors, evaluations, chunks_done, chunks_skipped, first_error}``:
-    counts over the chunks computed now, and how many were already done; ``on_chunk`` gets each
-    chunk's summary.
+    counts over the chunks computed now, and how many were already done.
     """
     todo, skipped = pending_chunks(manifest, job)
     total = new_total(skipped)
-    for k, rows in todo:
-        summary = certify_chunk(job, k, rows)
+    summaries = runner(job, todo) if runner is not None else (
+        certify_chunk(job, k, rows, progress=progress) for k, rows in todo)
+    for summary in summaries:
         add_summary(total, summary)
         if on_chunk:
             on_chunk(summary)

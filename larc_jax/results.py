@@ -15,9 +15,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .run_spec import RunSpec
 
 __all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS", "STAGES"]
 
@@ -187,6 +190,10 @@ class DatasetResult:
     None: the certificate says nothing about self-collision."""
     self_skipped: tuple[tuple[str, str, str], ...] = ()
     """With the self-collision test: the link pairs not checked, and why."""
+    spec: "RunSpec | None" = None
+    """The :class:`~larc_jax.run_spec.RunSpec` that produced this result (its model fields those of
+    the robot and capsules certified); None for a result built by hand. The loose fields above
+    (``method``, ``margin_m``...) are its values as the result's readers take them."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 

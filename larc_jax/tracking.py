@@ -42,6 +42,7 @@ import numpy as np
 from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
 from .robot import JointType, Robot
+from .run_spec import parse_tracking_tolerance  # the command-line form (no JAX: the CLI checks it first)
 
 __all__ = ["check_tracking_tolerance", "parse_tracking_tolerance", "tracked_capsules", "tracking_radius", "joint_units"]
 
@@ -83,28 +84,6 @@ def check_tracking_tolerance(value, robot: Robot, what: str = "certify: tracking
         raise LarcInputError(f"{what}: {len(items)} values for {n} active joints ({', '.join(names)})")
     return np.array([_value(x.item() if isinstance(x, np.generic) else x, f"{what}[{i}] ({names[i]})")
                      for i, x in enumerate(items)], np.float64)
-
-
-def parse_tracking_tolerance(text: str, what: str = "--tracking-tolerance"):
-    """The command-line form: ``RAD`` (every joint) or ``JOINT=VALUE,JOINT=VALUE,...``; returns a
-    float or a dict for :func:`check_tracking_tolerance`."""
-    text = text.strip()
-    if "=" not in text:
-        try:
-            return float(text)
-        except ValueError:
-            raise LarcInputError(f"{what} '{text}': expected a number or JOINT=VALUE,...") from None
-    out = {}
-    for item in text.split(","):
-        name, sep, x = item.partition("=")
-        name = name.strip()
-        try:
-            out[name] = float(x)
-        except ValueError:
-            raise LarcInputError(f"{what} '{item}': expected JOINT=VALUE (a number)") from None
-        if not sep or not name:
-            raise LarcInputError(f"{what} '{item}': expected JOINT=VALUE")
-    return out
 
 
 def tracking_radius(capsules: CapsuleModel, delta: np.ndarray) -> np.ndarray:

@@ -212,15 +212,16 @@ DASK = textwrap.dedent("""
         from dask.distributed import Client, LocalCluster
         from larc_jax.distributed import certify_manifest_dask
         from larc_jax.manifest import ManifestJob, certify_manifest
+        from larc_jax.run_spec import RunSpec
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \\
                 Client(cluster) as client:
             job = ManifestJob(out="dask.parquet", leaves="dask_leaves.parquet", robot_file=None, chunk_size=3,
-                              max_depth=5)
+                              spec=RunSpec(max_depth=5))
             total = certify_manifest_dask("m.csv", job, client)
             assert total["rows"] == 8 and total["chunks_done"] == 3, total
             assert len(client.scheduler_info()["workers"]) == 2
         local = ManifestJob(out="local.parquet", leaves="local_leaves.parquet", robot_file=None, chunk_size=3,
-                            max_depth=5)
+                            spec=RunSpec(max_depth=5))
         certify_manifest("m.csv", local)
         pd.testing.assert_frame_equal(pd.read_parquet("dask.parquet"), pd.read_parquet("local.parquet"))
         pd.testing.assert_frame_equal(pd.read_parquet("dask_leaves.parquet"), pd.read_parquet("local_leaves.parquet"))
