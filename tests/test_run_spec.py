@@ -1,0 +1,127 @@
+"""The run spec (larc_jax.run_spec): validated once, exact JSON round trip, the same run through
+``certify(spec=...)`` and keyword arguments, and in the manifest (self-collision and tracking
+tolerance included; a resume with another spec refused). Cheap: the reference method (NumPy) only."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import larc_jax as lj
+from larc_jax.cli import main as larc_main
+from larc_jax.errors import LarcInputError
+from larc_jax.run_spec import RunSpec
+
+from .test_certify import random_scene, random_trajectory
+from .test_stream import write_manifest
+
+SPECS = [
+    RunSpec(),
+    RunSpec(method="fine", margin_m=0.0125, max_depth=7, coarse_depth=2, enclosure="capsules", dtype="float32",
+            velocities="finite-difference"),
+    RunSpec(tracking_tolerance=0.1 + 0.2, self_collision=True, self_margin_m=1e-3, self_skip=("link1:link6",)),
+    RunSpec(tracking_tolerance=(0.001, 0.0, 0.0, 0.0, 0.0, 1 / 3)),
+    RunSpec(tracking_tolerance={"joint2": 0.002, "joint1": 0.0}, hold={"joint8": -0.0, "joint7": 0.035},
+            joints=("joint1", "joint2"), ignore_links=("base_link",)),
+]
+
+
+@pytest.mark.parametrize("spec", SPECS)
+def test_json_round_trip_is_exact(spec):
+    text = spec.to_json()
+    back = RunSpec.from_json(text)
+    assert back == spec and back.to_json() == text
+    assert RunSpec.from_dict(json.loads(text)) == spec
+
+
+@pytest.mark.parametrize("doc,field", [
+    ({"margin": 0.01}, "unknown field 'margin'"),
+    ({"margin_m": 0}, "margin_m"),
+    ({"margin_m": float("nan")}, "margin_m"),
+    ({"max_depth": 99}, "max_depth"),
+    ({"max_depth": 2.5}, "max_depth"),
+    ({"method": "exact"}, "method"),
+    ({"enclosure": "spheres"}, "enclosure"),
+    ({"dtype": "float16"}, "dtype float16"),
+    ({"velocities": "guess"}, "velocities"),
+    ({"tracking_tolerance": -0.1}, "tracking_tolerance"),
+    ({"tracking_tolerance": {"joint1": "x"}}, r"tracking_tolerance\[joint1\]"),
+    ({"self_collision": 1}, "self_collision"),
+    ({"self_collision": True, "self_margin_m": -1}, "self_margin_m"),
+    ({"self_margin_m": 0.01}, "need self_collision"),
+    ({"hold": {"joint7": "open"}}, r"hold\[joint7\]"),
+    ({"joints": "joint1"}, "joints"),
+])
+def test_bad_values_are_refused_naming_the_field(doc, field):
+    with pytest.raises(LarcInputError, match=field) as err:
+        RunSpec.from_json(json.dumps(doc), "state.json")
+    assert str(err.value).startswith("state.json: ") and "\n" not in str(err.value)
+    with pytest.raises(LarcInputError, match="not valid JSON"):
+        RunSpec.from_json("{", "state.json")
+
+
+def test_validation_does_not_load_jax():
+    code = ("import sys\nfrom larc_jax.run_spec import RunSpec\nRunSpec.from_json(RunSpec(margin_m=0.02).to_json())\n"
+            "try:\n    RunSpec(margin_m=-1)\nexcept Exception as e:\n    print(type(e).__name__)\n"
+            "assert 'jax' not in sys.modules, 'jax imported'\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                       cwd=Path(__file__).resolve().parent.parent)
+    assert p.returncode == 0 and p.stdout.strip() == "LarcInputError", p.stdout + p.stderr
+
+
+@pytest.fixture(scope="module")
+def few(robot):
+    rng = np.random.default_rng(19)
+    return [random_trajectory(rng, robot, k, max_waypoints=5) for k in range(3)], \
+        [random_scene(rng, k % 5) for k in range(3)]
+
+
+KWARGS = dict(method="reference", max_depth=3, margin=0.012, tracking_tolerance={"joint2": 0.001},
+              self_collision=True, self_margin=0.0005)
+
+
+def test_certify_spec_equals_keyword_arguments(robot, capsules, few):
+    trajs, scenes = few
+    spec = RunSpec(method="reference", max_depth=3, margin_m=0.012, tracking_tolerance={"joint2": 0.001},
+                   self_collision=True, self_margin_m=0.0005)
+    a = lj.certify(trajs, scenes, robot, capsules, spec=spec)
+    b = lj.certify(trajs, scenes, robot, capsules, **KWARGS)
+    pd.testing.assert_frame_equal(a.leaves_dataframe(), b.leaves_dataframe())
+    assert list(a.certified) == list(b.certified) and a.spec == b.spec
+    assert a.spec.joints == tuple(robot.active_joint_names) and a.spec.margin_m == a.margin_m == 0.012
+    assert a.self_margin_m == 0.0005 and dict(a.tracking_tolerance)["joint2"] == 0.001
+    with pytest.raises(LarcInputError, match="not both"):
+        lj.certify(trajs, scenes, robot, capsules, spec=spec, max_depth=3)
+    with pytest.raises(LarcInputError, match="spec must be a RunSpec"):
+        lj.certify(trajs, scenes, robot, capsules, spec=spec.to_dict())
+    with pytest.raises(LarcInputError, match="spec.joints"):
+        lj.certify(trajs, scenes, robot, capsules, spec=RunSpec(method="reference", joints=("joint1",)))
+
+
+def test_manifest_with_self_collision_and_tolerance_resumes_only_the_same_spec(tmp_path, robot, capsules, few, capsys):
+    trajs, scenes = few
+    manifest = write_manifest(tmp_path, trajs, scenes)
+    out = tmp_path / "r.parquet"
+    argv = ["certify", "--manifest", str(manifest), "--out", str(out), "--chunk-size", "2", "--method", "reference",
+            "--max-depth", "3", "--margin", "0.012", "--self-collision", "--self-margin", "0.0005",
+            "--tracking-tolerance", "joint2=0.001", "--no-fail-on-uncertified"]
+    assert larc_main(argv) == 0
+    got = pd.read_parquet(out)
+    direct = lj.certify([lj.read_trajectory(tmp_path / "data" / f"{t.id}.csv", robot) for t in trajs],
+                        [lj.read_scene(tmp_path / "data" / f"scene{k}.yaml") for k in range(len(trajs))],
+                        robot, capsules, **KWARGS)
+    assert list(got.certified) == list(direct.certified) and list(got.evaluations) == list(direct.evaluations)
+    state = json.loads((out / "_larc_manifest.json").read_text())
+    spec = RunSpec.from_dict(state["spec"])
+    assert spec.self_collision and spec.tracking_tolerance == (("joint2", 0.001),)
+    capsys.readouterr()
+    assert larc_main(argv) == 0 and "0 chunks now, 2 already done" in capsys.readouterr().out
+    changed = [a if a != "0.0005" else "0.001" for a in argv]
+    assert larc_main(changed) == 2
+    assert "different spec.self_margin_m" in capsys.readouterr().err
