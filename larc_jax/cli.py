@@ -301,8 +301,11 @@ def _certify_with_progress(args, spec, trajectories, scene, robot, capsules):
             bar.set_description_str("compiling kernels" if starting else desc)
 
         with CompileClock() as clock:
-            result = certify(trajectories, scene, robot, capsules, spec=spec, progress=lambda k: bar.update(k),
-                             on_compile=on_compile)
+            try:  # what needs the robot (a tolerance's joint names, the self-skip links) is checked here
+                result = certify(trajectories, scene, robot, capsules, spec=spec, progress=lambda k: bar.update(k),
+                                 on_compile=on_compile)
+            except LarcInputError as exc:
+                raise _option_error(exc) from None
     log.debug("kernels: %d compiled or loaded, %d of them from the persistent cache; tracing %.2f s, lowering "
               "%.2f s, XLA compile or cache load %.2f s", clock.compiles, clock.cache_hits, clock.trace_s,
               clock.lower_s, clock.compile_s)
@@ -334,10 +337,14 @@ def _certificate_options(args):
                        hold=_hold(args), joints=tuple(_joints(args) or ()),
                        ignore_links=tuple(getattr(args, "ignore_link", None) or ()))
     except LarcInputError as exc:
-        field = next((f for f in _SPEC_OPTIONS if str(exc).startswith(f)), None)
-        if field is None:
-            raise
-        raise LarcInputError(_SPEC_OPTIONS[field] + str(exc)[len(field):]) from None
+        raise _option_error(exc) from None
+
+
+def _option_error(exc: LarcInputError) -> LarcInputError:
+    """A run-spec field's error (``margin_m ...``, ``certify: margin_m ...``) naming its option instead."""
+    text = str(exc).removeprefix("certify: ")
+    field = next((f for f in _SPEC_OPTIONS if text.startswith(f)), None)
+    return exc if field is None else LarcInputError(_SPEC_OPTIONS[field] + text[len(field):])
 
 
 def _capsules_without(args, robot, capsules):
@@ -574,9 +581,10 @@ def _gripper_options(p: argparse.ArgumentParser, explain: bool = False) -> None:
     p.add_argument("--joints", metavar="J1,J2,...",
                    help="the joints the trajectories carry, if not the robot file's: e.g. add the fingers "
                         "(joint1,...,joint6,joint7,joint8) to certify a trajectory that moves the gripper")
-    if explain:  # the picture shows capsules: explain the capsule test
-        p.add_argument("--enclosure", default="capsules", choices=("capsules",),
-                       help="capsules (the picture draws the capsule test's placed, inflated capsules)")
+    if explain:  # the picture shows capsules; the leaf's decision is the whole test's
+        p.add_argument("--enclosure", default="capsules", choices=ENCLOSURES,
+                       help="capsules (default) or hull, as for certify: the leaf is decided by that test; the "
+                            "picture draws the capsule test's placed, inflated capsules")
     else:
         p.add_argument("--enclosure", default=DEFAULT_ENCLOSURE, choices=ENCLOSURES,
                        help="hull (default): capsule test, then the convex-hull test on the intervals it leaves "

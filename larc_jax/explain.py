@@ -36,9 +36,13 @@ from .errors import LarcInputError
 from .hermite import evaluate_np
 from .interval import evaluate_interval_np, trajectory_rounding
 from .io import atomic_write_bytes
+from .leaf_reference import leaf_enclosures, leaf_test_np
 from .results import Leaf, TrajectoryResult
 from .robot import Robot
+from .run_spec import RunSpec
 from .scene import Scene
+from .self_collision import curve_ranges, load_separation, self_pairs
+from .tracking import check_tracking_tolerance
 from .trajectory import Trajectory
 
 __all__ = ["Explanation", "choose_leaf", "describe_leaf", "explain", "render", "segment_box_closest_points",
@@ -76,6 +80,17 @@ class Explanation:
     """Distance between that capsule's axis and that box, m (nan without boxes)."""
     closest: tuple[np.ndarray, np.ndarray] | None
     """Closest points (on the axis, on the box) of that pair."""
+    stage: str = "capsule"
+    """The test of the result's run spec that decided the leaf, re-evaluated with its enclosure,
+    tracking tolerance, self-collision test and dtype (:func:`~larc_jax.leaf_reference.leaf_test_np`):
+    ``capsule``, ``hull`` or ``self`` when it passed (``self``: the recorded pair is a capsule pair
+    and every test passed), ``""`` when it did not."""
+    decided_clearance_m: float = math.nan
+    """g of the pair that decided the leaf (that test's), m; the leaf passed iff it exceeds ``guard_m``."""
+    guard_m: float = math.nan
+    """The rounding guard of that pair, m."""
+    other_capsule: int = -1
+    """With a self-collision pair deciding the leaf: its second capsule (``capsule`` the first)."""
 
     @property
     def shell_radius(self) -> np.ndarray:
@@ -150,27 +165,46 @@ def segment_box_closest_points(p0, p1, lo, hi, iters: int = 200):
 
 def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene,
             result: TrajectoryResult, leaf: Leaf | None = None) -> Explanation:
-    """Recompute the interval test on ``leaf`` (default: ``choose_leaf(result)``) of ``traj``,
-    with the margin the certificate used (``result.margin_m``).
+    """Recompute the interval test on ``leaf`` (default: ``choose_leaf(result)``) of ``traj``
+    with the run spec of the result (``result.spec``: margin, enclosure, tracking tolerance,
+    self-collision test, dtype; a result without one: the capsule test at ``result.margin_m``).
+    The leaf's decision is that of the whole test (:attr:`Explanation.stage`); the picture's
+    numbers are the capsule test's.
 
     ``traj`` must already be in the robot's joint order (``read_trajectory(path, robot)``).
     """
     leaf = leaf or choose_leaf(result)
-    bounds = trajectory_rounding(traj, robot, capsules)
-    ev = evaluate_interval_np(robot, capsules, traj, scene, leaf.t0, leaf.t1, result.margin_m, bounds)
+    spec = result.spec or RunSpec(method="reference", margin_m=result.margin_m, enclosure="capsules")
+    delta = check_tracking_tolerance(spec.tolerance_arg(), robot)
+    enc = leaf_enclosures(robot, capsules, spec.enclosure, delta)
+    bounds = trajectory_rounding(traj, robot, enc.capsules, spec.dtype, enc.hulls)
+    pairs, skip = None, None
+    if spec.self_collision:
+        pairs = self_pairs(robot, capsules, spec.self_margin_m, spec.self_skip, proven=load_separation(robot))
+        pairs = pairs if pairs.n_pairs else None
+        skip = None if pairs is None else pairs.skip_mask(*curve_ranges(traj, delta))
+    g, guard, c_dec, k_dec, other, stage = leaf_test_np(robot, enc, traj, scene, leaf.t0, leaf.t1, spec.margin_m,
+                                                        bounds, pairs, skip)
+    # The picture: the capsule test's placed capsules (radii grown by any tracking tolerance).
+    ev = evaluate_interval_np(robot, enc.capsules, traj, scene, leaf.t0, leaf.t1, spec.margin_m, bounds)
     c, k = int(ev.capsule), int(ev.box)
     closest, dist = None, math.nan
-    if scene.n_boxes:
+    if other >= 0:  # a self-collision pair decided the leaf: draw its two capsules
+        c, k = int(c_dec), -1
+    elif scene.n_boxes:
         closest = segment_box_closest_points(ev.p_world_a[c], ev.p_world_b[c], scene.lo[k], scene.hi[k])
         dist = float(np.linalg.norm(closest[0] - closest[1]))
     else:
         c = k = -1
+    passed = stage > 0
+    stage_name = "" if not passed else "self" if other >= 0 else ("capsule", "hull")[stage - 1]
     return Explanation(
         trajectory_id=result.id, certified=result.certified, leaf=leaf, t_mid=float(ev.t_mid) + float(bounds.offset_s),
         h=float(ev.h_cov),
-        q_mid=ev.q_mid, seg_a=ev.p_world_a, seg_b=ev.p_world_b, radius=np.asarray(capsules.radius, np.float64),
-        motion_b=ev.motion_b, margin_m=float(result.margin_m), clearance_m=float(ev.g), capsule=c,
-        box=k, distance_m=dist, closest=closest,
+        q_mid=ev.q_mid, seg_a=ev.p_world_a, seg_b=ev.p_world_b, radius=np.asarray(enc.capsules.radius, np.float64),
+        motion_b=ev.motion_b, margin_m=float(spec.margin_m), clearance_m=float(ev.g), capsule=c,
+        box=k, distance_m=dist, closest=closest, stage=stage_name, decided_clearance_m=float(g),
+        guard_m=float(guard), other_capsule=int(other),
     )
 
 
@@ -323,7 +357,12 @@ def render(ex: Explanation, robot: Robot, capsules: CapsuleModel, traj: Trajecto
     lines = [f"midpoint t_m = {ex.t_mid:.4f} s",
              f"half-width h = {ex.h * 1000:.2f} ms",
              "q(t_m) = [" + " ".join(f"{v:.2f}" for v in ex.q_mid) + "]"]
-    if blocking_c >= 0:
+    decided = {"": "no test passed it", "capsule": "passed by the capsule test", "hull": "passed by the hull test",
+               "self": "passed; nearest: the self-collision pair"}[ex.stage]
+    lines += [f"leaf {decided}: g = {_fmt_mm(ex.decided_clearance_m)}, guard {_fmt_mm(ex.guard_m)}"]
+    if ex.other_capsule >= 0:
+        lines += [f"self pair {capsules.names[ex.capsule]} / {capsules.names[ex.other_capsule]}"]
+    elif blocking_c >= 0:
         c = blocking_c
         lines += [
             "",

@@ -133,6 +133,8 @@ class TrajectoryResult:
     None: the certificate says nothing about self-collision."""
     self_skipped: tuple[tuple[str, str, str], ...] = ()
     """With the self-collision test: the link pairs not checked, and why."""
+    spec: "RunSpec | None" = None
+    """The run spec of the :class:`DatasetResult` this comes from (``explain`` re-evaluates with it)."""
 
     @property
     def first_inconclusive(self) -> Leaf | None:
@@ -227,7 +229,7 @@ class DatasetResult:
             max_depth=self.max_depth, guard_m=float(self.guard_m[i]), enclosure=self.enclosure,
             time_offset_s=0.0 if self.time_offset_s is None else float(self.time_offset_s[i]),
             excluded_links=self.excluded_links, tracking_tolerance=self.tracking_tolerance,
-            self_margin_m=self.self_margin_m, self_skipped=self.self_skipped,
+            self_margin_m=self.self_margin_m, self_skipped=self.self_skipped, spec=self.spec,
         )
 
     @functools.cached_property

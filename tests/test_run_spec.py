@@ -125,3 +125,23 @@ def test_manifest_with_self_collision_and_tolerance_resumes_only_the_same_spec(t
     changed = [a if a != "0.0005" else "0.001" for a in argv]
     assert larc_main(changed) == 2
     assert "different spec.self_margin_m" in capsys.readouterr().err
+
+
+def test_explain_decides_a_leaf_with_the_results_spec(robot, capsules):
+    """explain re-evaluates a leaf with the result's enclosure, tolerance and self test: a leaf the
+    hull stage passed is explained as passed by it, with the recorded clearance and guard."""
+    from larc_jax.explain import explain
+
+    from .test_cli import CELL, OK
+
+    scene, traj = lj.read_scene(CELL), lj.read_trajectory(OK, robot)
+    spec = RunSpec(method="reference", max_depth=4, tracking_tolerance=0.0005, self_collision=True)
+    result = lj.certify([traj], scene, robot, capsules, spec=spec)[0]
+    assert result.spec == lj.certify([traj], scene, robot, capsules, spec=spec).spec
+    stages = {leaf.stage for leaf in result.leaves}
+    assert "hull" in stages or "capsule" in stages
+    for leaf in result.leaves[:: max(1, len(result.leaves) // 6)]:
+        ex = explain(robot, capsules, traj, scene, result, leaf=leaf)
+        assert ex.decided_clearance_m == leaf.clearance_m and ex.guard_m == leaf.guard_m
+        assert (ex.stage != "") == leaf.certified
+        assert ex.stage == ("self" if leaf.other_capsule else leaf.stage or "")
