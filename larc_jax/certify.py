@@ -49,6 +49,8 @@ from .trajectory import Trajectory, validate_trajectory
 __all__ = [
     "Method",
     "certify",
+    "run_spec",
+    "SPEC_KEYWORDS",
     "DEFAULT_MARGIN_M",
     "DEFAULT_MAX_DEPTH",
     "DEFAULT_COARSE_DEPTH",
@@ -185,9 +187,16 @@ def _items(value, kind, what: str) -> list:
     return list(value)
 
 
-def _run_spec(spec, options: dict) -> RunSpec:
-    """``spec``, or the RunSpec the keyword arguments give (those not given: its defaults)."""
-    given = {k: v for k, v in options.items() if v is not _DEFAULT}
+SPEC_KEYWORDS = {"method": "method", "margin": "margin_m", "max_depth": "max_depth", "coarse_depth": "coarse_depth",
+                 "dtype": "dtype", "enclosure": "enclosure", "tracking_tolerance": "tracking_tolerance",
+                 "self_collision": "self_collision", "self_margin": "self_margin_m", "self_skip": "self_skip"}
+"""The keyword arguments of :func:`certify` that a :class:`RunSpec` holds, and its field for each."""
+
+
+def run_spec(spec: RunSpec | None = None, **options) -> RunSpec:
+    """``spec``, or the RunSpec that :func:`certify`'s keyword arguments ``options`` give (those
+    not given: its defaults); both given: :class:`LarcInputError`."""
+    given = {SPEC_KEYWORDS[k]: v for k, v in options.items() if v is not _DEFAULT}
     if spec is not None:
         if not isinstance(spec, RunSpec):
             raise LarcInputError(f"certify: spec must be a RunSpec (larc_jax.RunSpec), got {type(spec).__name__}")
@@ -315,9 +324,9 @@ def certify(
     excludes (:meth:`CapsuleModel.without_links`) are named in the result. JAX computations run
     with 64-bit types enabled only inside this call (scoped, not global).
     """
-    spec = _run_spec(spec, dict(method=method, margin_m=margin, max_depth=max_depth, coarse_depth=coarse_depth,
-                                dtype=dtype, enclosure=enclosure, tracking_tolerance=tracking_tolerance,
-                                self_collision=self_collision, self_margin_m=self_margin, self_skip=self_skip))
+    spec = run_spec(spec, method=method, margin=margin, max_depth=max_depth, coarse_depth=coarse_depth, dtype=dtype,
+                    enclosure=enclosure, tracking_tolerance=tracking_tolerance, self_collision=self_collision,
+                    self_margin=self_margin, self_skip=self_skip)
     method, margin, max_depth, enclosure = Method(spec.method), spec.margin_m, spec.max_depth, spec.enclosure
     trajectories, scenes, dtype = _check_inputs(trajectories, scenes, robot, capsules, spec.dtype, progress)
     spec = _model_spec(spec, robot, capsules)

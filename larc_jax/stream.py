@@ -18,7 +18,7 @@ from __future__ import annotations
 import itertools
 from typing import Iterable, Iterator
 
-from .certify import certify
+from .certify import SPEC_KEYWORDS, certify, run_spec
 from .defaults import DEFAULT_CHUNK_SIZE
 from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
@@ -47,12 +47,16 @@ def certify_stream(
 ) -> Iterator[DatasetResult]:
     """Certify ``(trajectory, scene)`` pairs chunk by chunk; yield one result per chunk.
 
-    ``certify_kwargs`` are those of :func:`~larc_jax.certify.certify` (``method``, ``margin``,
-    ``max_depth``, ``dtype``, ``progress``...). Memory is bounded by ``chunk_size``; the
-    iterable is consumed lazily.
+    ``certify_kwargs`` are those of :func:`~larc_jax.certify.certify`: ``spec`` (a
+    :class:`~larc_jax.run_spec.RunSpec`, checked here once, before the first chunk is read) or its
+    keyword arguments (``method``, ``margin``, ``max_depth``, ``dtype``...), ``progress``... Every
+    chunk's result carries the spec. Memory is bounded by ``chunk_size``; the iterable is
+    consumed lazily.
     """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise LarcInputError(f"certify_stream: chunk_size must be an integer >= 1, got {chunk_size!r}")
+    options = {k: certify_kwargs.pop(k) for k in list(certify_kwargs) if k in SPEC_KEYWORDS}
+    spec = run_spec(certify_kwargs.pop("spec", None), **options)  # validated once, before any item is read
     seen = 0
     for chunk in chunked(items, chunk_size):
         for k, pair in enumerate(chunk):
@@ -60,4 +64,4 @@ def certify_stream(
                 raise LarcInputError(f"certify_stream: item {seen + k} is not a (trajectory, scene) pair")
         seen += len(chunk)
         trajectories, scenes = zip(*chunk)
-        yield certify(list(trajectories), list(scenes), robot, capsules, **certify_kwargs)
+        yield certify(list(trajectories), list(scenes), robot, capsules, spec=spec, **certify_kwargs)

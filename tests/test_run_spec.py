@@ -145,3 +145,16 @@ def test_explain_decides_a_leaf_with_the_results_spec(robot, capsules):
         assert ex.decided_clearance_m == leaf.clearance_m and ex.guard_m == leaf.guard_m
         assert (ex.stage != "") == leaf.certified
         assert ex.stage == ("self" if leaf.other_capsule else leaf.stage or "")
+
+
+def test_stream_takes_one_spec(robot, capsules, few):
+    trajs, scenes = few
+    spec = RunSpec(method="reference", max_depth=2)
+    parts = list(lj.certify_stream(zip(trajs, scenes), robot, capsules, chunk_size=2, spec=spec))
+    kw = list(lj.certify_stream(zip(trajs, scenes), robot, capsules, chunk_size=2, method="reference", max_depth=2))
+    assert [len(p) for p in parts] == [2, 1] and all(p.spec == parts[0].spec == q.spec for p, q in zip(parts, kw))
+    assert [list(p.certified) for p in parts] == [list(q.certified) for q in kw]
+    with pytest.raises(LarcInputError, match="margin_m"):
+        next(lj.certify_stream(iter(()), robot, capsules, margin=-1.0))
+    with pytest.raises(LarcInputError, match="not both"):
+        next(lj.certify_stream(iter(()), robot, capsules, spec=spec, margin=0.02))
