@@ -4,6 +4,7 @@ tolerance included; a resume with another spec refused). Cheap: the reference me
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -158,3 +159,27 @@ def test_stream_takes_one_spec(robot, capsules, few):
         next(lj.certify_stream(iter(()), robot, capsules, margin=-1.0))
     with pytest.raises(LarcInputError, match="not both"):
         next(lj.certify_stream(iter(()), robot, capsules, spec=spec, margin=0.02))
+
+
+def test_dask_runs_the_same_manifest_loop(tmp_path, few):
+    """Dask (an in-process cluster) and this process run one loop: same rows, same state."""
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import Client, LocalCluster
+
+    from larc_jax.distributed import certify_manifest_dask
+    from larc_jax.manifest import ManifestJob, certify_manifest
+
+    trajs, scenes = few
+    manifest = write_manifest(tmp_path, trajs, scenes)
+    spec = RunSpec(method="reference", max_depth=2, self_collision=True, tracking_tolerance=0.001)
+    jobs = [ManifestJob(out=str(tmp_path / name), leaves=None, robot_file=None, spec=spec, chunk_size=2)
+            for name in ("dask.parquet", "local.parquet")]
+    seen = []
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        total = certify_manifest_dask(manifest, jobs[0], client, on_chunk=seen.append)
+    assert total["rows"] == 3 and total["chunks_done"] == 2 and len(seen) == 2
+    certify_manifest(manifest, jobs[1])
+    pd.testing.assert_frame_equal(pd.read_parquet(jobs[0].out), pd.read_parquet(jobs[1].out))
+    with pytest.raises(LarcInputError, match="spec.max_depth"):  # refused before reaching any cluster
+        certify_manifest_dask(manifest, dataclasses.replace(jobs[0], spec=RunSpec(max_depth=3)), "tcp://0.0.0.0:1")
