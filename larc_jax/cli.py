@@ -369,9 +369,6 @@ def _check_certify_options(args, outputs=()):
 def _cmd_certify(args) -> int:
     import json
 
-    from .enclosure.robot_file import load_robot_file
-    from .scene import read_scene
-
     if args.manifest:
         return _certify_manifest(args)
     for option in ("out", "dask"):
@@ -384,6 +381,9 @@ def _cmd_certify(args) -> int:
     spec = _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves),
                                          ("--certificate", args.certificate)))
     leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
+    from .enclosure.robot_file import load_robot_file  # loads JAX: after every option was checked
+    from .scene import read_scene
+
     timer = _PhaseTimer()
     robot, capsules = load_robot_file(args.robot, hold=dict(spec.hold), active_joints=list(spec.joints) or None)
     capsules = _capsules_without(args, robot, capsules)
