@@ -27,7 +27,7 @@ __all__ = [
     "write_trajectory", "read_moveit_scene", "finite_difference_velocities", "enable_compile_cache",
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
     "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport", "view",
-    "RunSpec",
+    "RunSpec", "fit_robot_file", "parse_hold", "parse_joints", "parse_package_dirs",
 ]
 
 _loaded = False
@@ -44,6 +44,7 @@ def _load() -> None:
         capsule_segments,
         default_capsule_path,
         fit_capsules,
+        fit_robot_file,
         load_capsules,
         load_robot_file,
         motion_constants,
@@ -53,6 +54,7 @@ def _load() -> None:
     from .geometry import segment_box_distance, segment_box_distances
     from .hermite import HermiteSpline, speed_max
     from .interval import IntervalEval, evaluate_interval, interval_clearance
+    from .option_values import parse_hold, parse_joints, parse_package_dirs
     from .results import DatasetResult, Leaf, LeafTable, TrajectoryResult
     from .robot import JointType, Robot, forward_kinematics
     from .run_spec import RunSpec

@@ -16,18 +16,18 @@ Compiled JAX kernels are kept in a persistent cache (:mod:`larc_jax.compilation`
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import sys
-import time
 import traceback
-import warnings
 from pathlib import Path
 
+from .cli_output import PhaseTimer as _PhaseTimer
+from .cli_output import logging_for, progress_bar as _progress_bar, write_output as _write_output
 from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH,
                        DEFAULT_PADDING_M, ENCLOSURES, METHODS, VELOCITY_MODES)
 from .errors import LarcInputError, OneLineError
-from .report import format_clearance, leaves_bytes, result_json, table_lines
+from .option_values import parse_capsules_per_link, parse_hold, parse_joints, parse_package_dirs
+from .report import format_clearance, leaves_bytes, leaves_format as _leaves_format, result_json, table_lines
 from .verify_report import VerifyPins
 
 log = logging.getLogger("larc")
@@ -35,101 +35,6 @@ log = logging.getLogger("larc")
 EXIT_OK, EXIT_UNCERTIFIED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 EXIT_REFUTED = 1
 """``larc verify``: the certificate's claim does not hold."""
-
-
-class _LogFormatter(logging.Formatter):
-    def format(self, record: logging.LogRecord) -> str:
-        msg = record.getMessage()
-        if record.exc_info:
-            msg += "\n" + self.formatException(record.exc_info)
-        if record.levelno >= logging.WARNING:
-            return f"larc: {record.levelname.lower()}: {msg}"
-        if record.levelno < logging.INFO:
-            return f"larc: debug [{record.name}]: {msg}"
-        return f"larc: {msg}"
-
-
-class _BarSafeHandler(logging.StreamHandler):
-    """Writes through ``tqdm.write``, which clears and redraws a progress bar being shown."""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            from tqdm import tqdm
-
-            tqdm.write(self.format(record), file=self.stream)
-        except Exception:  # noqa: BLE001 - logging must never raise
-            self.handleError(record)
-
-
-@contextlib.contextmanager
-def _logging_for(args):
-    """Route loggers ``larc`` (the command line) and ``larc_jax`` (the library modules), with
-    their children, to stderr at the level the flags ask for; restore the previous
-    configuration afterwards (``main`` may be called in-process, e.g. by tests)."""
-    quiet, verbose = getattr(args, "quiet", False), getattr(args, "verbose", False)
-    level = logging.ERROR if quiet else (logging.DEBUG if verbose else logging.INFO)
-    ours = [logging.getLogger(name) for name in ("larc", "larc_jax")]
-    jax_log = logging.getLogger("jax")
-    saved = [(lg.level, lg.propagate, list(lg.handlers)) for lg in ours], jax_log.level
-    handler = _BarSafeHandler(sys.stderr)
-    handler.setFormatter(_LogFormatter())
-    for lg in ours:
-        lg.handlers = [handler]
-        lg.setLevel(level)
-        lg.propagate = False
-    jax_log.setLevel(logging.ERROR if quiet else logging.WARNING)  # backend probing noise
-    try:
-        with warnings.catch_warnings():
-            if quiet:
-                warnings.simplefilter("ignore")
-            yield
-    finally:
-        for lg, (lvl, prop, handlers) in zip(ours, saved[0]):
-            lg.setLevel(lvl)
-            lg.propagate = prop
-            lg.handlers = handlers
-        jax_log.setLevel(saved[1])
-
-
-def _progress_bar(args, **kwargs):
-    """A tqdm bar on stderr: shown if ``--progress``, hidden if ``--quiet`` or ``--no-progress``,
-    else shown when stderr is a terminal (after half a second, so quick steps stay silent)."""
-    from tqdm import tqdm
-
-    forced = getattr(args, "progress", None)
-    show = not getattr(args, "quiet", False) and (forced if forced is not None else sys.stderr.isatty())
-    return tqdm(file=sys.stderr, disable=not show, delay=0.0 if forced else 0.5, leave=False,
-                dynamic_ncols=True, **kwargs)
-
-
-def _write_output(path, data: bytes, what: str) -> None:
-    """Write an output file atomically; a write failure is a usage error (exit 2)."""
-    from .io import atomic_write_bytes
-
-    try:
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        raise LarcInputError(f"{path}: cannot write {what} ({exc.strerror or exc})") from None
-    log.info("wrote %s (%s)", path, what)
-
-
-_LEAF_FORMATS = {".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
-
-
-def _leaves_format(path: str) -> str:
-    """Output format of ``--leaves PATH`` from its suffix; checked before any work is done."""
-    fmt = _LEAF_FORMATS.get(Path(path).suffix.lower())
-    if fmt is None:
-        raise LarcInputError(f"--leaves {path}: unknown file type (use a .parquet or .csv name)")
-    if fmt == "parquet":
-        try:
-            import pyarrow  # noqa: F401
-        except ImportError:
-            raise LarcInputError(
-                f"--leaves {path}: writing Parquet needs pyarrow (pip install pyarrow); "
-                "or give a .csv file name"
-            ) from None
-    return fmt
 
 
 def _read_trajectories(args, paths, robot):
@@ -148,93 +53,30 @@ def _read_trajectories(args, paths, robot):
 
 def _hold(args) -> dict[str, float]:
     """``--hold JOINT=VALUE`` (repeatable) as a mapping; a joint given twice is refused."""
-    import math
-
-    held = {}
-    for item in getattr(args, "hold", None) or []:
-        joint, sep, value = item.partition("=")
-        try:
-            number = float(value)
-        except ValueError:
-            number = math.nan
-        if not sep or not joint or not math.isfinite(number):
-            raise LarcInputError(f"--hold '{item}': expected JOINT=VALUE with a finite number")
-        if joint in held:
-            raise LarcInputError(f"--hold {joint} is given twice")
-        held[joint] = number
-    return held
+    return parse_hold(getattr(args, "hold", None))
 
 
 def _joints(args) -> list[str] | None:
     """``--joints j1,j2,...``: the active joints (default: the robot file's)."""
-    value = getattr(args, "joints", None)
-    if not value:
-        return None
-    names = [n.strip() for n in value.split(",")]
-    if not all(names):
-        raise LarcInputError(f"--joints '{value}': expected comma-separated joint names")
-    return names
-
-
-def _package_dirs(items: list[str] | None) -> dict[str, str]:
-    out = {}
-    for item in items or []:
-        name, sep, path = item.partition("=")
-        if not sep or not name or not path:
-            raise LarcInputError(f"--package-dir '{item}': expected NAME=PATH")
-        out[name] = path
-    return out
+    return parse_joints(getattr(args, "joints", None))
 
 
 def _cmd_fit_capsules(args) -> int:
-    from .enclosure import fit_capsules, load_capsules, save_capsules, verify_containment
-    from .enclosure.fit import fit_stated_capsules
-    from .enclosure.hull import choose_hull_parts
-    from .urdf import load_robot
+    from .enclosure.fit_robot import check_padding, fit_robot_file
 
-    per_link = {}
-    for item in args.capsules_per_link or []:
-        link, sep, count = item.partition("=")
-        if not sep or not count.isdigit():
-            raise LarcInputError(f"--capsules-per-link '{item}': expected LINK=1 or LINK=2")
-        per_link[link] = int(count)
-    held = _hold(args)
-    robot = load_robot(
-        args.urdf, _package_dirs(args.package_dir),
-        active_joints=args.joints.split(",") if args.joints else None,
-        held_joint_values=held,
-    )
     with _progress_bar(args, desc="fitting capsules", unit=" links") as bar:
         def on_link(msg: str) -> None:
             log.debug("%s", msg)
             bar.set_postfix_str(msg.removeprefix("fitting "), refresh=False)
             bar.update(1)
 
-        fitted = fit_capsules(
-            robot, n_capsules=args.n_capsules, capsules_per_link=per_link, padding_m=args.padding,
-            progress=on_link,
-        )
-        stated = fit_stated_capsules(robot, padding_m=args.padding, progress=on_link)
-        hull_parts = choose_hull_parts(robot, progress=on_link)
-    import os
-
-    out_dir = Path(args.output).resolve().parent  # the file's paths are relative to its folder
-    rel = lambda p: os.path.relpath(Path(p).expanduser().resolve(), out_dir)  # noqa: E731
-    urdf_field = None if args.no_urdf_field else rel(args.urdf)
-    save_capsules(args.output, robot, fitted, padding_m=args.padding, urdf=urdf_field,
-                  package_dirs={k: rel(v) for k, v in _package_dirs(args.package_dir).items()},
-                  stated=stated, hull_parts=hull_parts)
-    caps = load_capsules(args.output, robot)
-    checked = verify_containment(robot, caps, source=str(args.output))
+        fit = fit_robot_file(
+            args.urdf, args.output, package_dirs=parse_package_dirs(args.package_dir), active_joints=_joints(args),
+            held_joint_values=_hold(args), n_capsules=args.n_capsules,
+            capsules_per_link=parse_capsules_per_link(args.capsules_per_link),
+            padding_m=check_padding(args.padding, "--padding"), record_urdf=not args.no_urdf_field, progress=on_link)
     if not args.quiet:
-        wc = max([12] + [len(f.name) for f in fitted])  # long link names keep the columns
-        wl = max([10] + [len(f.link) for f in fitted])
-        print(f"{'capsule':<{wc}} {'link':<{wl}} {'radius_m':>9} {'vol_cm3':>8} {'hull_cm3':>8} {'ratio':>6}")
-        for f in fitted:
-            print(f"{f.name:<{wc}} {f.link:<{wl}} {f.radius:>9.6f} {f.volume_m3 * 1e6:>8.1f} "
-                  f"{f.hull_volume_m3 * 1e6:>8.1f} {f.volume_m3 / max(f.hull_volume_m3, 1e-30):>6.2f}")
-        print(f"wrote {args.output}: {len(fitted)} capsules; containment proven for "
-              f"{sum(checked.values())} mesh elements")
+        print("\n".join(fit.table_lines()))
     return EXIT_OK
 
 
@@ -250,24 +92,6 @@ def _cmd_verify_capsules(args) -> int:
               f"{p.capsules} capsules, {p.stated_capsules} stated-finger capsules and {p.hull_parts} hull parts "
               f"(padding {p.padding_m * 1000:g} mm; {p.seconds:.1f} s); URDF and collision geometry match the fit")
     return EXIT_OK
-
-
-class _PhaseTimer:
-    """Seconds per phase of a command, for the ``-v`` log."""
-
-    def __init__(self):
-        self.t = time.perf_counter()
-        self.laps: dict[str, float] = {}
-
-    def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        self.laps[name] = now - self.t
-        self.t = now
-
-    def log(self, result) -> None:
-        log.debug("time: %s (of which compiling %.2f s, running %.2f s)",
-                  ", ".join(f"{k} {v:.2f} s" for k, v in self.laps.items()), result.compile_time_s,
-                  result.wall_time_s - result.compile_time_s)
 
 
 def _compile_cache(args) -> None:
@@ -751,7 +575,7 @@ def main(argv: list[str] | None = None) -> int:
     except _UsageError as exc:
         print(f"larc: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    with _logging_for(args):
+    with logging_for(args):
         try:
             if args.command in ("certify", "explain"):
                 _compile_cache(args)

@@ -1,15 +1,18 @@
 """Human- and machine-readable reports of a certification result: the terminal table, the
 per-trajectory JSON document and the leaf table (Parquet or CSV bytes). Used by the command
-line; usable from Python (:func:`table_lines`, :func:`result_json`, :func:`leaves_bytes`)."""
+line; usable from Python (:func:`table_lines`, :func:`result_json`, :func:`leaves_bytes`,
+:func:`leaves_format`)."""
 
 from __future__ import annotations
 
 import io
 import math
+from pathlib import Path
 
+from .errors import LarcInputError
 from .results import DatasetResult
 
-__all__ = ["format_clearance", "table_lines", "result_json", "leaves_bytes", "gripper_text"]
+__all__ = ["format_clearance", "table_lines", "result_json", "leaves_bytes", "leaves_format", "gripper_text"]
 
 
 def gripper_text(result: DatasetResult) -> str:
@@ -104,3 +107,23 @@ def leaves_bytes(result: DatasetResult, fmt: str) -> bytes:
     buf = io.BytesIO()
     df.to_parquet(buf, index=False)
     return buf.getvalue()
+
+
+_LEAF_FORMATS = {".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
+
+
+def leaves_format(path, what: str = "--leaves") -> str:
+    """The format of a leaf-table file (``parquet`` or ``csv``) from its name's suffix, for
+    :func:`leaves_bytes`; checked before any work is done (a Parquet name needs pyarrow).
+    :class:`LarcInputError` naming ``what`` and the path otherwise."""
+    fmt = _LEAF_FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        raise LarcInputError(f"{what} {path}: unknown file type (use a .parquet or .csv name)")
+    if fmt == "parquet":
+        try:
+            import pyarrow  # noqa: F401
+        except ImportError:
+            raise LarcInputError(
+                f"{what} {path}: writing Parquet needs pyarrow (pip install pyarrow); or give a .csv file name"
+            ) from None
+    return fmt
