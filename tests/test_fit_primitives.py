@@ -86,6 +86,14 @@ def test_fit_capsules_command_bad_requests(tmp_path, capsys):
     assert "cannot fit 9 capsules" in capsys.readouterr().err
     assert larc_main(["fit-capsules", str(urdf), "-o", str(out), "--capsules-per-link", "link6=2"]) == 2
     assert "link 'link6' is not a link with collision geometry" in capsys.readouterr().err
+    for bad, message in ((["--padding", "nan"], "--padding nan: must be a finite number >= 0 m"),  # was exit 3
+                         (["--capsules-per-link", "post=\u00b2"], "--capsules-per-link 'post=\u00b2'"),  # was exit 3
+                         (["--hold", "j4"], "--hold 'j4': expected JOINT=VALUE"),
+                         (["--package-dir", "nothing"], "--package-dir 'nothing': expected NAME=PATH")):
+        assert larc_main(["fit-capsules", str(urdf), "-o", str(out), *bad]) == 2
+        assert f"larc: error: {message}" in capsys.readouterr().err
+    assert larc_main(["fit-capsules", str(urdf), "-o", str(tmp_path)]) == 2
+    assert "is a directory" in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -124,3 +132,49 @@ def test_prismatic_curve_beyond_its_limits_is_refused(tmp_path):
     assert certify(inside, Scene.empty(), robot, capsules)[0].certified
     assert np.asarray(capsules.motion_a)[list(capsules.names).index("carriage"), 0] > 0.2
 
+
+
+def test_fit_robot_file_from_python(tmp_path):
+    """fit_robot_file (what `larc fit-capsules` runs) from Python: a held finger-like prismatic
+    joint gives stated capsules, paths are relative to the file's folder, and the file passes
+    `larc verify-capsules`'s proof of every enclosure it gives."""
+    from larc_jax import fit_robot_file
+    from larc_jax.enclosure.proof import prove_robot_file
+
+    (tmp_path / "slider.urdf").write_text(SLIDER)
+    out = tmp_path / "robots" / "slider.yaml"
+    steps = []
+    fit = fit_robot_file(tmp_path / "slider.urdf", out, active_joints=["spin"], held_joint_values={"slide": 0.1},
+                         progress=steps.append)
+    assert fit.path == out and [f.name for f in fit.fitted] == ["base", "turn", "carriage"]
+    assert {"fitting carriage", "splitting turn", "proving base"} <= set(steps)
+    assert "urdf: ../slider.urdf" in out.read_text() and fit.elements_proven > 0
+    assert fit.table_lines()[-1] == f"wrote {out}: 3 capsules; containment proven for {fit.elements_proven} mesh elements"
+    proof = prove_robot_file(out)
+    assert (proof.capsules, proof.stated_capsules, proof.links) == (3, 1, 3)
+    robot, capsules = load_robot_file(out)
+    assert robot.active_joint_names == fit.robot.active_joint_names == ("spin",)
+    assert capsules.names == fit.capsules.names
+
+
+def test_fit_robot_file_refuses_before_the_work_and_never_leaves_an_unproven_file(tmp_path, monkeypatch):
+    from larc_jax import fit_robot_file
+    from larc_jax.enclosure import fit_robot
+
+    urdf = tmp_path / "slider.urdf"
+    urdf.write_text(SLIDER)
+    out = tmp_path / "robot.yaml"
+    for padding in (float("nan"), -0.001, True):
+        with pytest.raises(LarcInputError, match=r"^padding_m .*: must be a finite number >= 0 m"):
+            fit_robot_file(urdf, out, padding_m=padding)
+    with pytest.raises(LarcInputError, match="is a directory"):
+        fit_robot_file(urdf, tmp_path)
+
+    def not_contained(robot, capsules, **kwargs):
+        raise LarcInputError("link 'carriage' element 0 is not inside any of its capsules")
+
+    out.write_text("an older robot file\n")
+    monkeypatch.setattr(fit_robot, "verify_containment", not_contained)
+    with pytest.raises(LarcInputError, match="not inside"):
+        fit_robot_file(urdf, out)
+    assert not out.exists()

@@ -101,18 +101,23 @@ def fit_robot_file(
     from ..urdf import load_robot
 
     padding_m = check_padding(padding_m)
+    output = Path(output)
+    if output.is_dir():  # before the work
+        raise LarcInputError(f"{output}: is a directory, expected a robot file name to write")
     robot = load_robot(urdf, package_dirs, active_joints=active_joints, held_joint_values=held_joint_values)
     step = progress or (lambda msg: None)
     fitted = fit_capsules(robot, n_capsules=n_capsules, capsules_per_link=capsules_per_link, padding_m=padding_m,
                           progress=step)
     stated = fit_stated_capsules(robot, padding_m=padding_m, progress=step)
     hull_parts = choose_hull_parts(robot, progress=step)
-    output = Path(output)
     out_dir = output.resolve().parent  # the file's paths are relative to its folder
     rel = lambda p: os.path.relpath(Path(p).expanduser().resolve(), out_dir)  # noqa: E731
-    save_capsules(output, robot, fitted, padding_m=padding_m, urdf=rel(urdf) if record_urdf else None,
-                  package_dirs={k: rel(v) for k, v in (package_dirs or {}).items()},
-                  stated=stated, hull_parts=hull_parts)
+    try:
+        save_capsules(output, robot, fitted, padding_m=padding_m, urdf=rel(urdf) if record_urdf else None,
+                      package_dirs={k: rel(v) for k, v in (package_dirs or {}).items()},
+                      stated=stated, hull_parts=hull_parts)
+    except OSError as exc:
+        raise LarcInputError(f"{output}: cannot write the robot file ({exc.strerror or exc})") from None
     try:
         capsules = load_capsules(output, robot)
         checked = verify_containment(robot, capsules, source=str(output), progress=lambda l: step(f"proving {l}"))
