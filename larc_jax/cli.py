@@ -21,12 +21,11 @@ import sys
 import traceback
 from pathlib import Path
 
-from .cli_output import PhaseTimer as _PhaseTimer
-from .cli_output import logging_for, progress_bar as _progress_bar, write_output as _write_output
+from .cli_output import PhaseTimer, logging_for, progress_bar, write_output
 from .cli_parser import UsageError, build_parser as _build_parser
 from .errors import LarcInputError
 from .option_values import parse_capsules_per_link, parse_hold, parse_joints, parse_package_dirs
-from .report import format_clearance, leaves_bytes, leaves_format as _leaves_format, result_json, table_lines
+from .report import format_clearance, leaves_bytes, leaves_format, result_json, table_lines
 from .verify_report import VerifyPins
 
 log = logging.getLogger("larc")
@@ -42,7 +41,7 @@ def _read_trajectories(args, paths, robot):
 
     kwargs = {"velocities": args.velocities} if getattr(args, "velocities", None) else {}
     out = []
-    with _progress_bar(args, total=len(paths), desc="reading", unit=" files") as bar:
+    with progress_bar(args, total=len(paths), desc="reading", unit=" files") as bar:
         for p in paths:
             out.append(read_trajectory(p, robot, **kwargs))
             bar.update(1)
@@ -63,7 +62,7 @@ def _joints(args) -> list[str] | None:
 def _cmd_fit_capsules(args) -> int:
     from .enclosure.fit_robot import check_padding, fit_robot_file
 
-    with _progress_bar(args, desc="fitting capsules", unit=" links") as bar:
+    with progress_bar(args, desc="fitting capsules", unit=" links") as bar:
         def on_link(msg: str) -> None:
             log.debug("%s", msg)
             bar.set_postfix_str(msg.removeprefix("fitting "), refresh=False)
@@ -84,7 +83,7 @@ def _cmd_verify_capsules(args) -> int:
     from .enclosure.robot_file import default_capsule_path
 
     source = str(args.robot or default_capsule_path())
-    with _progress_bar(args, desc="verifying containment", unit=" links") as bar:
+    with progress_bar(args, desc="verifying containment", unit=" links") as bar:
         p = prove_robot_file(args.robot, progress=lambda link: bar.update(1))  # loading checks hashes, coverage
     if not args.quiet:
         print(f"{source}: containment proven for {p.elements} collision elements of {p.links} links in "
@@ -119,7 +118,7 @@ def _certify_with_progress(args, spec, trajectories, scene, robot, capsules):
     n = len(trajectories)
     total = {"fine": n * 2**spec.max_depth, "coarse": n * 2**spec.coarse_depth}.get(spec.method)
     desc = f"certifying ({spec.method})"
-    with _progress_bar(args, total=total, desc=desc, unit=" intervals") as bar:
+    with progress_bar(args, total=total, desc=desc, unit=" intervals") as bar:
         def on_compile(starting: bool) -> None:
             bar.set_description_str("compiling kernels" if starting else desc)
 
@@ -203,11 +202,11 @@ def _cmd_certify(args) -> int:
         raise LarcInputError("certify needs --scene FILE (or --manifest FILE.csv, whose rows name the scenes)")
     spec = _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves),
                                          ("--certificate", args.certificate)))
-    leaves_fmt = _leaves_format(args.leaves) if args.leaves else None  # fail before the work
+    leaves_fmt = leaves_format(args.leaves) if args.leaves else None  # fail before the work
     from .enclosure.robot_file import load_robot_file  # loads JAX: after every option was checked
     from .scene import read_scene
 
-    timer = _PhaseTimer()
+    timer = PhaseTimer()
     robot, capsules = load_robot_file(args.robot, hold=dict(spec.hold), active_joints=list(spec.joints) or None)
     capsules = _capsules_without(args, robot, capsules)
     timer.lap("robot")
@@ -221,11 +220,11 @@ def _cmd_certify(args) -> int:
     if not args.quiet:
         print("\n".join(table_lines(result)))
     if args.json:
-        _write_output(args.json, (json.dumps(result_json(result, args.scene), indent=2) + "\n").encode(),
+        write_output(args.json, (json.dumps(result_json(result, args.scene), indent=2) + "\n").encode(),
                       "per-trajectory results")
     if args.leaves:
         n_leaves = sum(len(r.leaves) for r in result)
-        _write_output(args.leaves, leaves_bytes(result, leaves_fmt), f"{n_leaves} leaves")
+        write_output(args.leaves, leaves_bytes(result, leaves_fmt), f"{n_leaves} leaves")
     if args.certificate:
         from .certificate import write_certificate
 
@@ -257,7 +256,7 @@ def _certify_manifest(args) -> int:
     spec = _check_certify_options(args)
     job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, spec=spec, chunk_size=args.chunk_size)
     rows_done = [0]
-    with _progress_bar(args, desc=f"certifying ({spec.method})", unit=" intervals") as bar:
+    with progress_bar(args, desc=f"certifying ({spec.method})", unit=" intervals") as bar:
 
         def on_chunk(summary: dict) -> None:
             if args.dask:  # workers cannot report intervals as they go: count per chunk
