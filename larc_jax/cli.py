@@ -185,6 +185,7 @@ def _check_certify_options(args, outputs=()):
     for option, out in outputs:
         if out and Path(out).is_dir():
             raise LarcInputError(f"{option} {out}: is a directory, expected a file name to write")
+    _compile_cache(args)  # imports JAX: only once every option was checked
     return spec
 
 
@@ -382,8 +383,6 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     with logging_for(args):
         try:
-            if args.command in ("certify", "explain"):
-                _compile_cache(args)
             return _COMMANDS[args.command](args)
         except LarcInputError as exc:
             print(f"larc: error: {exc}", file=sys.stderr)
