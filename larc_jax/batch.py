@@ -34,10 +34,12 @@ from .enclosure.capsule import CapsuleModel
 from .enclosure.hull import HullModel
 from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
-from .lazy_jax import jax, jnp  # importing this module loads JAX and registers the pytrees (lazy_jax)
+from .leaf import LeafRecord, Stage, box_record, compose, needs_hull, self_record
+from .lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
+from .placement import place
 from .robot import Robot
 from .scene import Scene, pad_scenes
-from .self_collision import SelfPairs, self_clearance
+from .self_collision import SelfPairs, self_stage
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
@@ -158,22 +160,16 @@ def _hull_pairs(hulls, part, T_part, lo, hi, motion_b, margin):
 
 @jax.jit
 def _self_intervals(robot, capsules, splines, bounds, traj, a, b, self_check):
-    """The self test (:mod:`larc_jax.self_collision`) on F intervals of trajectories ``traj``:
-    ``self_check = (first, second, motion_a, margin_self, skip)``, ``skip`` (trajectories, P): the
-    pairs proven apart for each trajectory. Returns ``(g, guard, capsule, other)`` of the capsule
-    pair with the smallest ``g - guard`` (NaN on non-finite geometry). The capsules are placed
-    as the box test places them (:func:`~larc_jax.interval.evaluate_interval`, no boxes)."""
+    """The self stage (:func:`~larc_jax.self_collision.self_stage`) on F intervals of trajectories
+    ``traj``: ``self_check = (first, second, motion_a, margin_self, skip)``, ``skip``
+    (trajectories, P): the pairs proven apart for each trajectory. Returns ``(g, guard, capsule,
+    other)`` of the capsule pair with the smallest ``g - guard`` (NaN on non-finite geometry)."""
     first, second, motion_pair, margin_self, skip = self_check
-    no_box = jnp.zeros((1, 3), robot.T_parent_joint.dtype)
 
     def one(k, ai, bi):
-        spline = SplineRow(splines, k)
         bnd = jax.tree.map(lambda x: x[k], bounds)
-        ev = evaluate_interval(robot, capsules, spline, no_box, no_box, jnp.zeros(1, bool), ai, bi, 0.0, bnd)
-        gs, gds, c1, c2 = self_clearance(ev.p_world_a, ev.p_world_b, capsules.radius, ev.h_cov,
-                                         ev.omega_max + bnd.omega_slack, bnd.guard_m, first, second, motion_pair,
-                                         margin_self, skip[k])
-        return jnp.where(jnp.isnan(ev.g), jnp.nan, gs), gds, c1, c2  # ev.g: NaN iff non-finite geometry
+        placed = place(robot, capsules, SplineRow(splines, k), ai, bi, bnd)
+        return self_stage(placed, capsules.radius, bnd, first, second, motion_pair, margin_self, skip[k])
 
     return jax.vmap(one)(traj, a, b)
 
@@ -294,17 +290,17 @@ class Batch:
 
     def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                  on_compile: Callable[[bool], None] | None = None):
-        """``(a, b, g, guard, capsule, box, other)`` for every interval (NumPy arrays; ``a, b`` in
-        the trajectory's own time axis): the capsule test, and with :attr:`self_pairs` the self
-        test too (the worse of the two is recorded; ``other`` is the second capsule of a
-        self-collision pair, -1 for a box pair); ``on_chunk(n)`` after each chunk of ``n``
-        intervals, ``on_compile(True/False)`` around a compiling call."""
-        a, b, box_test, self_test = self._tests(traj, depth, index, on_chunk, on_compile)
-        return (a, b, *_worse(box_test, self_test))
+        """``(a, b, record)`` for every interval (``a, b`` in the trajectory's own time axis, NumPy
+        arrays; ``record`` a :class:`~larc_jax.leaf.LeafRecord` of NumPy arrays): the capsule
+        test, and with :attr:`self_pairs` the self test too, composed by
+        :func:`~larc_jax.leaf.compose`; ``on_chunk(n)`` after each chunk of ``n`` intervals,
+        ``on_compile(True/False)`` around a compiling call."""
+        a, b, capsule_test, self_test = self._tests(traj, depth, index, on_chunk, on_compile)
+        return a, b, compose(capsule_test, self_test)
 
     def _tests(self, traj, depth, index, on_chunk, on_compile):
-        """``(a, b, box_test, self_test)``: ``(g, guard, capsule, box)`` of the capsule test and
-        ``(g, guard, capsule, other)`` of the self test (None without :attr:`self_pairs`)."""
+        """``(a, b, capsule_test, self_test)``: the :class:`~larc_jax.leaf.LeafRecord` of the
+        capsule stage and of the self stage (None without :attr:`self_pairs`)."""
         a, b = self.endpoints(traj, depth, index)
         ar, br = self._rebased(traj, a, b)
         run = self._kernel(_evaluate_intervals_broad if self.use_broad_phase else _evaluate_intervals, on_compile)
@@ -322,8 +318,8 @@ class Batch:
             gs, gds, c1, c2 = self._bucketed(
                 lambda t, x, y: _call(call, (self.robot, self.capsules, self.splines, self.bounds, t, x, y, check),
                                       on_compile), [traj, ar, br])
-            self_test = (gs, gds, c1.astype(np.int64), c2.astype(np.int64))
-        return a, b, (g, guard, cap.astype(np.int64), box.astype(np.int64)), self_test
+            self_test = self_record(gs, gds, c1.astype(np.int64), c2.astype(np.int64))
+        return a, b, box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.CAPSULE), self_test
 
     @property
     def use_broad_phase(self) -> bool:
@@ -337,56 +333,43 @@ class Batch:
 
     def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                          on_compile: Callable[[bool], None] | None = None):
-        """The cascade (larc_jax.cascade) on every interval: ``(a, b, g, guard, capsule, box,
-        other, stage)``, stage 1 for intervals the capsule test passes, 2 for those only the hull
-        test passes, 0 for the rest (``stage > 0`` iff ``g > guard``). The hull test runs only
-        where the capsules fail a box and the self test (if any) passes. Without :attr:`hulls`,
-        the capsule test alone."""
-        a, b, (g, guard, cap, box), self_test = self._tests(traj, depth, index, on_chunk, on_compile)
-        self_ok = np.ones(len(traj), bool) if self_test is None else self_test[0] > self_test[1]
-        stage = ((g > guard) & self_ok).astype(np.int8)
-        open_ = np.flatnonzero(~(g > guard) & ~np.isnan(g) & self_ok)
+        """The leaf test (:mod:`larc_jax.leaf`) on every interval: ``(a, b, record)`` as
+        :meth:`evaluate`, with the hull stage (larc_jax.cascade) where
+        :func:`~larc_jax.leaf.needs_hull` (the capsules fail a box and the self test, if any,
+        passes); ``record.stage`` is CAPSULE, HULL or NONE (``stage > 0`` iff ``g > guard``).
+        Without :attr:`hulls`, the capsule test alone."""
+        a, b, record, self_test = self._tests(traj, depth, index, on_chunk, on_compile)
+        open_ = np.flatnonzero(needs_hull(record, self_test))
         if self.hulls is not None and len(open_):
-            tr = traj[open_]
-            ar, br = self._rebased(tr, a[open_], b[open_])
-            pairs_call = _interval_pairs if len(self.devices) > 1 else _cached(_interval_pairs)
-            hull_call = _hull_pairs if len(self.devices) > 1 else _cached(_hull_pairs)
-            d = PairDetails(*self._bucketed(
-                lambda t, sc, x, y: _call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
-                                                       self.box_lo, self.box_hi, self.box_mask, self.bounds, t,
-                                                       sc, x, y, self.margin), on_compile),
-                [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
-            links = Links.of(self.capsules, self.hulls)
-            G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
-            G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
-            tried, triples = select_pairs(links, d.g_capsule - G_c[:, :, None], d.g_upper - G_p[:, :, None])
-            g_hull = guard_hull = np.zeros(0)
-            if len(triples):
-                i, p, k = triples.T
-                sc = self.scene_of[tr[i]]
-                g_hull = self._bucketed(
-                    lambda pp, T, lo, hi, mb: _call(hull_call, (self.hulls, pp, T, lo, hi, mb, self.margin),
-                                                    on_compile),
-                    [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
-                    buckets=CASCADE_BUCKETS)
-                guard_hull = G_p[i, p]
-            g2, guard2, cap2, box2, passed = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
-            g, guard, cap, box = g.copy(), guard.copy(), cap.copy(), box.copy()
-            g[open_], guard[open_], cap[open_], box[open_] = g2, guard2, cap2, box2
-            stage[open_] = np.where(passed, 2, 0)
-        return (a, b, *_worse((g, guard, cap, box), self_test), stage)
+            record = record.put(open_, self._hull_stage(traj[open_], a[open_], b[open_], on_compile))
+        return a, b, compose(record, self_test)
 
-
-def _worse(box_test, self_test):
-    """``(g, guard, capsule, box, other)``: the record of the box test, or of the self test where
-    its ``g - guard`` is smaller (or NaN): a leaf passes iff both tests pass."""
-    g, guard, cap, box = box_test
-    if self_test is None:
-        return g, guard, cap, box, np.full(len(g), -1, np.int64)
-    gs, gds, c1, c2 = self_test
-    worse = (gs - gds < g - guard) | np.isnan(gs)
-    return (np.where(worse, gs, g), np.where(worse, gds, guard), np.where(worse, c1, cap), np.where(worse, 0, box),
-            np.where(worse, c2, -1))
+    def _hull_stage(self, tr, a, b, on_compile) -> LeafRecord:
+        """The hull stage (steps 2-5 of larc_jax.cascade) on the intervals ``(tr, a, b)``."""
+        ar, br = self._rebased(tr, a, b)
+        pairs_call = _interval_pairs if len(self.devices) > 1 else _cached(_interval_pairs)
+        hull_call = _hull_pairs if len(self.devices) > 1 else _cached(_hull_pairs)
+        d = PairDetails(*self._bucketed(
+            lambda t, sc, x, y: _call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
+                                                   self.box_lo, self.box_hi, self.box_mask, self.bounds, t,
+                                                   sc, x, y, self.margin), on_compile),
+            [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
+        links = Links.of(self.capsules, self.hulls)
+        G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
+        G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
+        tried, triples = select_pairs(links, d.g_capsule - G_c[:, :, None], d.g_upper - G_p[:, :, None])
+        g_hull = guard_hull = np.zeros(0)
+        if len(triples):
+            i, p, k = triples.T
+            sc = self.scene_of[tr[i]]
+            g_hull = self._bucketed(
+                lambda pp, T, lo, hi, mb: _call(hull_call, (self.hulls, pp, T, lo, hi, mb, self.margin),
+                                                on_compile),
+                [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
+                buckets=CASCADE_BUCKETS)
+            guard_hull = G_p[i, p]
+        g, guard, cap, box, _ = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
+        return box_record(g, guard, cap, box, Stage.HULL)
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,

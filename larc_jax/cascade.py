@@ -242,10 +242,11 @@ def combine(links: Links, g_capsule: np.ndarray, guard_capsule: np.ndarray, trie
 
 
 def cascade_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, links: Links, traj, scene, a: float,
-               b: float, margin: float, bounds):
+               b: float, margin: float, bounds, ev=None):
     """Steps 1-5 on one leaf ``[a, b]`` (the trajectory's own time axis) with the NumPy
-    references: ``(g, guard, capsule, box, stage)``."""
-    ev = evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bounds)
+    references: ``(g, guard, capsule, box, stage)``; ``ev``: the leaf's capsule test
+    (:func:`~larc_jax.interval.evaluate_interval_np`), computed if None."""
+    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bounds)
     if ev.g > ev.guard or math.isnan(ev.g):
         return ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard)
     d = interval_pairs_np(robot, capsules, hulls, traj, scene, a, b, margin, bounds, ev)

@@ -36,6 +36,7 @@ from .enclosure.hull import HullModel
 from .enclosure.meshes import held_joint_states
 from .errors import LarcInputError
 from .io import short_repr
+from .leaf import LeafRecord
 from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np
 from .interval import geometry_dtype, trajectory_rounding
 from .results import DatasetResult, LeafTable
@@ -100,17 +101,18 @@ class _Names:
         return out
 
 
-def _leaf_table(names: _Names, traj, depth, index, a, b, g, guard, cap, box, stage, other) -> LeafTable:
+def _leaf_table(names: _Names, traj, depth, index, a, b, rec: LeafRecord) -> LeafTable:
+    """The leaves ``(traj, depth, index)``, ``[a, b]``, with what the leaf test recorded (:mod:`larc_jax.leaf`)."""
     traj = np.asarray(traj, np.int64)
-    other = np.full(len(traj), -1, np.int64) if other is None else np.asarray(other, np.int64)
+    other = np.asarray(rec.other, np.int64)
     has = names.has_boxes[traj] & (other < 0)
+    stage = np.asarray(rec.stage, np.int8)
     return LeafTable(
         traj=traj, depth=np.asarray(depth, np.int16), index=np.asarray(index, np.int64),
-        t0=np.asarray(a, np.float64), t1=np.asarray(b, np.float64), clearance_m=np.asarray(g, np.float64),
-        guard_m=np.asarray(guard, np.float64), certified=np.asarray(stage, np.int8) > 0,
-        stage=np.asarray(stage, np.int8),
-        capsule=np.where(has | (other >= 0), np.asarray(cap, np.int64), -1).astype(np.int32),
-        box=np.where(has, names.offset[traj] + np.asarray(box, np.int64), -1).astype(np.int32),
+        t0=np.asarray(a, np.float64), t1=np.asarray(b, np.float64), clearance_m=np.asarray(rec.clearance_m, np.float64),
+        guard_m=np.asarray(rec.guard_m, np.float64), certified=stage > 0, stage=stage,
+        capsule=np.where(has | (other >= 0), np.asarray(rec.capsule, np.int64), -1).astype(np.int32),
+        box=np.where(has, names.offset[traj] + np.asarray(rec.box, np.int64), -1).astype(np.int32),
         other_capsule=other.astype(np.int32),
     )
 
@@ -125,11 +127,10 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress,
             break
         depth = np.full(len(traj), d)
         frontier[:, d] = np.bincount(traj, minlength=n_traj)
-        a, b, g, guard, cap, box, other, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
-        passed = stage > 0  # g > guard; NaN never passes (larc_jax.cascade)
+        a, b, rec = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
+        passed = rec.stage > 0  # g > guard; NaN never passes (larc_jax.leaf)
         final = passed | (d == max_depth)
-        parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], g[final],
-                                 guard[final], cap[final], box[final], stage[final], other[final]))
+        parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], rec.take(final)))
         open_ = ~final
         traj = np.repeat(traj[open_], 2)
         index = np.stack([2 * index[open_], 2 * index[open_] + 1], axis=1).reshape(-1)
@@ -141,38 +142,37 @@ def _fixed(batch: Batch, n_traj: int, names: _Names, depth_fixed, max_depth, pro
     traj = np.repeat(np.arange(n_traj, dtype=np.int64), m)
     index = np.tile(np.arange(m, dtype=np.int64), n_traj)
     depth = np.full(len(traj), depth_fixed)
-    a, b, g, guard, cap, box, other, stage = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
+    a, b, rec = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
     frontier = np.zeros((n_traj, max(max_depth, depth_fixed) + 1), np.int64)
     frontier[:, depth_fixed] = m
-    return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, g, guard, cap, box,
-                                                        stage, other)])
+    return frontier, LeafTable.concatenate([_leaf_table(names, traj, depth, index, a, b, rec)])
 
 
 def _reference(trajectories, scenes, names: _Names, robot, enc: LeafEnclosures, margin, max_depth, bounds, progress,
                pairs: SelfPairs | None = None, skips=None):
     frontier = np.zeros((len(trajectories), max_depth + 1), np.int64)
-    rows = []  # (traj, depth, index, a, b, g, guard, capsule, box, stage, other)
+    rows, records = [], []  # (traj, depth, index, a, b) and the LeafRecord of each leaf
     for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
         ts, te = float(traj.t[0]), float(traj.t[-1])
 
         def certify_node(d: int, i: int) -> bool:  # Algorithm 1
             a, b = (float(x) for x in dyadic_ends(ts, te, d, i))
             frontier[k, d] += 1
-            g, guard, cap, box, other, stage = leaf_test_np(robot, enc, traj, scene, a, b, margin, bnd, pairs,
-                                                            None if skips is None else skips[k])
+            rec = leaf_test_np(robot, enc, traj, scene, a, b, margin, bnd, pairs, None if skips is None else skips[k])
             if progress:
                 progress(1)
-            passed = stage > 0
+            passed = bool(rec.stage > 0)
             if passed or d == max_depth:
-                rows.append((k, d, i, a, b, g, guard, cap, box, stage, other))
+                rows.append((k, d, i, a, b))
+                records.append(rec)
                 return passed
             left = certify_node(d + 1, 2 * i)
             right = certify_node(d + 1, 2 * i + 1)
             return left and right
 
         certify_node(0, 0)
-    cols = list(zip(*rows)) if rows else [[]] * 11
-    return frontier, LeafTable.concatenate([_leaf_table(names, *cols)])
+    cols = list(zip(*rows)) if rows else [[]] * 5
+    return frontier, LeafTable.concatenate([_leaf_table(names, *cols, LeafRecord.stack(records))])
 
 
 def _items(value, kind, what: str) -> list:

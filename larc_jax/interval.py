@@ -103,12 +103,13 @@ import math
 
 import numpy as np
 
-from .enclosure.capsule import CapsuleModel, capsule_segments, capsule_segments_np
+from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
 from .clearance import min_clearance
 from .geometry import segment_box_distance, segment_box_distance_np
-from .hermite import HermiteSpline, evaluate, evaluate_np, speed_max, speed_max_np
+from .hermite import HermiteSpline
 from .lazy_jax import jax, jnp, pytree_dataclass
+from .placement import Placement, motion_radii, place, place_np
 from .robot import JointType, Robot
 
 __all__ = [
@@ -116,6 +117,8 @@ __all__ = [
     "RoundingBounds",
     "evaluate_interval",
     "evaluate_interval_np",
+    "evaluate_placed",
+    "evaluate_placed_np",
     "motion_radii",
     "interval_clearance",
     "interval_clearance_np",
@@ -334,16 +337,6 @@ class IntervalEval:
     with ``k=None``)."""
 
 
-def motion_radii(motion_a, h_cov, speed):
-    """Motion radii ``b_e = h_cov * sum_j a_ej speed_j`` (eq. 6) of enclosures with motion
-    constants ``motion_a`` (E, n), float64 and rounded up (P3): (E,), m. JAX or NumPy arrays."""
-    eps = _EPS64
-    n = speed.shape[-1]
-    if isinstance(speed, np.ndarray):
-        return h_cov * (np.asarray(motion_a, np.float64) @ speed) * (1 + (n + 64) * eps)
-    return h_cov * jnp.matmul(motion_a, speed, precision=jax.lax.Precision.HIGHEST) * (1 + (n + 64) * eps)
-
-
 def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSpline,
                       box_lo: jax.Array, box_hi: jax.Array, box_mask: jax.Array,
                       a: jax.Array, b: jax.Array, margin: jax.Array, bounds: RoundingBounds,
@@ -360,22 +353,20 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
         broad phase picks the ``k`` most threatening pairs (:func:`~larc_jax.clearance.min_clearance`)
         and ``exact`` says whether the result is certainly the all-pairs one.
     """
-    eps = float(jnp.finfo(spline.knots().dtype).eps)
-    gdtype = robot.T_parent_joint.dtype
-    eps_g = float(jnp.finfo(gdtype).eps)
-    t_mid = 0.5 * (a + b)
-    h = 0.5 * (b - a)
-    h_cov = (jnp.maximum(t_mid - a, b - t_mid) + bounds.tau_s) * (1 + 2 * eps)  # T4
-    q_mid, _ = evaluate(spline, t_mid)
-    lo = jnp.maximum(a - bounds.tau_s, bounds.t_start)  # T5
-    hi = jnp.minimum(b + bounds.tau_s, bounds.t_end)
-    omega_max = speed_max(spline, lo, hi)  # eq. 5
-    speed = omega_max + bounds.omega_slack  # P2
-    motion_b = motion_radii(capsules.motion_a, h_cov, speed)  # eq. 6, P3
-    p_world_a, p_world_b = capsule_segments(robot, capsules, q_mid.astype(gdtype))
+    return evaluate_placed(place(robot, capsules, spline, a, b, bounds), capsules, box_lo, box_hi, box_mask,
+                           margin, bounds, k)
+
+
+def evaluate_placed(pl: Placement, capsules: CapsuleModel, box_lo, box_hi, box_mask, margin, bounds,
+                    k: int | None = None) -> IntervalEval:
+    """The capsule-box test (eq. 7) of :func:`evaluate_interval` on an interval already placed
+    (:func:`~larc_jax.placement.place`): the capsule stage of the leaf test."""
+    eps = float(jnp.finfo(pl.q_mid.dtype).eps)
+    eps_g = float(jnp.finfo(pl.p_world_a.dtype).eps)
+    p_world_a, p_world_b, motion_b = pl.p_world_a, pl.p_world_b, pl.motion_b
     per_box = jax.vmap(segment_box_distance, in_axes=(None, None, 0, 0))
     dist = jax.vmap(per_box, in_axes=(0, 0, None, None))(p_world_a, p_world_b, box_lo, box_hi)
-    dist = dist.astype(q_mid.dtype) * (1 - K_DIST_REL * eps_g)  # G2
+    dist = dist.astype(pl.q_mid.dtype) * (1 - K_DIST_REL * eps_g)  # G2
     shell = (capsules.radius + motion_b + margin) * (1 + 2 * eps)  # G4
     g_cb = jnp.where(box_mask[None, :], dist - shell[:, None], jnp.inf)  # eq. 7 (unused outputs cost nothing)
     n_boxes = box_lo.shape[0]
@@ -389,14 +380,10 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
         g_pick, capsule, box, exact = min_clearance(
             p_world_a, p_world_b, shell, box_lo, box_hi, jnp.zeros(n_boxes, shell.dtype), box_mask, k,
             dist_scale=1 - K_DIST_REL * eps_g, guard_seg=bounds.guard_m)
-    finite = (
-        jnp.isfinite(q_mid).all() & jnp.isfinite(omega_max).all() & jnp.isfinite(motion_b).all()
-        & jnp.isfinite(p_world_a).all() & jnp.isfinite(p_world_b).all()
-    )
-    g = jnp.where(finite, g_pick, jnp.nan)  # NaN never certifies
-    return IntervalEval(g=g, guard=bounds.guard_m[capsule], capsule=capsule, box=box, t_mid=t_mid, h=h,
-                        h_cov=h_cov, q_mid=q_mid, omega_max=omega_max, motion_b=motion_b,
-                        p_world_a=p_world_a, p_world_b=p_world_b, g_pairs=g_cb, speed=speed, exact=exact)
+    g = jnp.where(pl.finite, g_pick, jnp.nan)  # NaN never certifies
+    return IntervalEval(g=g, guard=bounds.guard_m[capsule], capsule=capsule, box=box, t_mid=pl.t_mid, h=pl.h,
+                        h_cov=pl.h_cov, q_mid=pl.q_mid, omega_max=pl.omega_max, motion_b=motion_b,
+                        p_world_a=p_world_a, p_world_b=p_world_b, g_pairs=g_cb, speed=pl.speed, exact=exact)
 
 
 def interval_clearance(robot, capsules, spline, box_lo, box_hi, box_mask, a, b, margin, bounds):
@@ -412,18 +399,13 @@ def evaluate_interval_np(robot: Robot, capsules: CapsuleModel, traj, scene, t0: 
     a :class:`~larc_jax.scene.Scene`; ``bounds``: :func:`trajectory_rounding`, computed if None)."""
     if bounds is None:
         bounds = trajectory_rounding(traj, robot, capsules)
-    offset, tau = float(bounds.offset_s), float(bounds.tau_s)
-    t = np.asarray(traj.t, np.float64) - offset  # exact (T1)
-    a, b = (float(x) for x in rebase_ends(t0, t1, offset))
-    t_mid = 0.5 * (a + b)
-    h = 0.5 * (b - a)
-    h_cov = (max(t_mid - a, b - t_mid) + tau) * (1 + 2 * _EPS64)
-    q_mid, _ = evaluate_np(t, traj.q, traj.qd, t_mid)
-    omega_max = speed_max_np(t, traj.q, traj.qd, max(a - tau, t[0]), min(b + tau, t[-1]))
-    speed = omega_max + np.asarray(bounds.omega_slack, np.float64)
-    motion_b = motion_radii(capsules.motion_a, h_cov, speed)
-    p_a, p_b = capsule_segments_np(robot, capsules, q_mid)
-    finite = all(np.isfinite(x).all() for x in (q_mid, omega_max, motion_b, p_a, p_b))
+    a, b = (float(x) for x in rebase_ends(t0, t1, float(bounds.offset_s)))
+    return evaluate_placed_np(place_np(robot, capsules, traj, a, b, bounds), capsules, scene, margin, bounds)
+
+
+def evaluate_placed_np(pl: Placement, capsules: CapsuleModel, scene, margin: float, bounds) -> IntervalEval:
+    """NumPy float64 twin of :func:`evaluate_placed` (``scene``: a :class:`~larc_jax.scene.Scene`)."""
+    p_a, p_b, motion_b = pl.p_world_a, pl.p_world_b, pl.motion_b
     radius = np.asarray(capsules.radius, np.float64)
     guard = np.asarray(bounds.guard_m, np.float64)
     best, pair, g = math.inf, (0, 0), math.inf
@@ -436,10 +418,10 @@ def evaluate_interval_np(robot: Robot, capsules: CapsuleModel, traj, scene, t0: 
             excess = (dist - shell) - guard[c]
             if excess < best or (math.isnan(excess) and not math.isnan(best)):
                 best, pair, g = excess, (c, k), dist - shell
-    g = g if finite else math.nan
-    return IntervalEval(g=g, guard=float(guard[pair[0]]), capsule=pair[0], box=pair[1], t_mid=t_mid, h=h,
-                        h_cov=h_cov, q_mid=q_mid, omega_max=omega_max, motion_b=motion_b,
-                        p_world_a=p_a, p_world_b=p_b, g_pairs=g_pairs, speed=speed, exact=True)
+    g = g if pl.finite else math.nan
+    return IntervalEval(g=g, guard=float(guard[pair[0]]), capsule=pair[0], box=pair[1], t_mid=pl.t_mid, h=pl.h,
+                        h_cov=pl.h_cov, q_mid=pl.q_mid, omega_max=pl.omega_max, motion_b=motion_b,
+                        p_world_a=p_a, p_world_b=p_b, g_pairs=g_pairs, speed=pl.speed, exact=True)
 
 
 def interval_clearance_np(robot, capsules, traj, scene, t0: float, t1: float, margin: float, bounds=None):

@@ -10,7 +10,9 @@ A certificate's leaf passes when every test the run asked for passes on it:
    (:func:`~larc_jax.self_collision.self_clearance_np`);
 
 all with the enclosures grown by the tracking tolerance (:func:`~larc_jax.tracking.tracked_capsules`,
-hull parts alike). The leaf records the ``(g, guard)`` of the worst test: it passed iff ``g > guard``.
+hull parts alike). The leaf is placed once (:func:`~larc_jax.placement.place_np`) and its stages
+composed by :func:`~larc_jax.leaf.compose`, the rule the batched schedulers use: the leaf records
+the ``(g, guard)`` of the worst test; it passed iff ``g > guard``.
 
 :func:`leaf_enclosures` builds the enclosures a run uses from its parameters, so that
 :func:`~larc_jax.certify.certify` and the checker (:mod:`larc_jax.verify`) build the same ones.
@@ -20,16 +22,15 @@ Nothing here imports JAX (the modules it calls reach it through :mod:`larc_jax.l
 from __future__ import annotations
 
 import dataclasses
-import math
-
-import numpy as np
 
 from .cascade import Links, cascade_np
 from .enclosure.capsule import CapsuleModel
 from .enclosure.hull import HullModel, hull_model
-from .interval import evaluate_interval_np
+from .interval import evaluate_placed_np, rebase_ends
+from .leaf import LeafRecord, Stage, box_record, compose, needs_hull
+from .placement import place_np
 from .robot import Robot
-from .self_collision import SelfPairs, self_clearance_np
+from .self_collision import SelfPairs, self_stage_np
 from .tracking import tracked_capsules
 
 __all__ = ["LeafEnclosures", "leaf_enclosures", "leaf_test_np"]
@@ -63,27 +64,18 @@ def leaf_enclosures(robot: Robot, capsules: CapsuleModel, enclosure: str, delta=
 
 
 def leaf_test_np(robot: Robot, enc: LeafEnclosures, traj, scene, t0: float, t1: float, margin: float, bounds,
-                 pairs: SelfPairs | None = None, skip=None):
-    """The leaf ``[t0, t1]`` (the trajectory's own time axis): ``(g, guard, capsule, box, other,
-    stage)``; ``other`` the second capsule of a recorded self pair (-1: a box pair), ``stage`` 1
-    (capsule test), 2 (hull test) or 0 (not passed)."""
+                 pairs: SelfPairs | None = None, skip=None) -> LeafRecord:
+    """The :class:`~larc_jax.leaf.LeafRecord` of the leaf ``[t0, t1]`` (the trajectory's own time
+    axis): placed once, its stages composed by :func:`~larc_jax.leaf.compose` (as the batched
+    schedulers do); ``pairs``, ``skip``: the self test's pairs and the ones proven apart."""
     capsules = enc.capsules
-    ev = evaluate_interval_np(robot, capsules, traj, scene, t0, t1, margin, bounds)
-    g, guard, cap, box, stage, other = ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard), -1
-    self_ok = True
-    if pairs is not None:
-        gs, gds, c1, c2 = self_clearance_np(ev.p_world_a, ev.p_world_b, np.asarray(capsules.radius, np.float64),
-                                           ev.h_cov, ev.omega_max + np.asarray(bounds.omega_slack), bounds.guard_m,
-                                           pairs, skip)
-        if math.isnan(ev.g):
-            gs = math.nan  # non-finite geometry
-        self_ok = gs > gds
-    if enc.links is not None and self_ok and not stage and not math.isnan(ev.g):
-        g, guard, cap, box, stage = cascade_np(robot, capsules, enc.hulls, enc.links, traj, scene, t0, t1, margin,
-                                               bounds)
-    if pairs is not None:
-        if gs - gds < g - guard or math.isnan(gs):
-            g, guard, cap, box, other = gs, gds, c1, 0, c2
-        if not self_ok:
-            stage = 0
-    return g, guard, cap, box, other, stage
+    a, b = (float(x) for x in rebase_ends(t0, t1, float(bounds.offset_s)))
+    placed = place_np(robot, capsules, traj, a, b, bounds)
+    ev = evaluate_placed_np(placed, capsules, scene, margin, bounds)
+    record = box_record(ev.g, ev.guard, ev.capsule, ev.box, Stage.CAPSULE)
+    self_test = None if pairs is None else self_stage_np(placed, capsules.radius, bounds, pairs, skip)
+    if enc.links is not None and needs_hull(record, self_test):
+        g, guard, cap, box, _ = cascade_np(robot, capsules, enc.hulls, enc.links, traj, scene, t0, t1, margin, bounds,
+                                           ev)
+        record = box_record(g, guard, cap, box, Stage.HULL)
+    return compose(record, self_test)

@@ -19,17 +19,18 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from .leaf import LeafColumn, Stage
+
 if TYPE_CHECKING:
     from .run_spec import RunSpec
 
 __all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS", "STAGES"]
 
-STAGES = ("", "capsule", "hull")
-"""Which test passed a leaf, by code: 0 none (not certified), 1 the capsule test, 2 the hull test
-of the cascade (larc_jax.cascade)."""
+STAGES = tuple(s.label for s in (Stage.NONE, Stage.CAPSULE, Stage.HULL))
+"""Which test passed a leaf, by code (:class:`~larc_jax.leaf.Stage`): 0 none (not certified), 1
+the capsule test, 2 the hull test of the cascade (larc_jax.cascade)."""
 
-LEAF_COLUMNS = ("id", "depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box",
-                "other_capsule", "stage")
+LEAF_COLUMNS = tuple(c.value for c in LeafColumn)
 """Columns of :meth:`DatasetResult.leaves_dataframe` (and of ``larc certify --leaves``)."""
 
 RESULT_COLUMNS = ("id", "scene", "method", "certified", "evaluations", "min_clearance_m", "guard_m", "duration_s",

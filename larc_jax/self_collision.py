@@ -89,6 +89,8 @@ import numpy as np
 from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
 from .interval import K_DIST_REL
+from .leaf import LeafRecord, self_record
+from .placement import motion_radii
 from .lazy_jax import jax, jnp
 from .robot import Robot
 
@@ -99,7 +101,8 @@ __all__ = [
     "segment_segment_distance_np",
     "self_clearance",
     "self_clearance_np",
-    "pair_motion",
+    "self_stage",
+    "self_stage_np",
     "curve_ranges",
     "check_self_margin",
     "path_joints",
@@ -356,14 +359,6 @@ def segment_segment_distance_np(p0, p1, q0, q1) -> float:
 # ----------------------------------------------------------------------------------------------
 
 
-def pair_motion(h_cov, speed, motion_a):
-    """(P,) relative motion radius ``b_p`` of every pair (module docstring), m: ``h_cov`` the
-    covering radius (s), ``speed`` (n,) speed maxima plus slack, ``motion_a`` (P, n) ``A_pj``."""
-    eps = float(jnp.finfo(speed.dtype).eps)
-    n = speed.shape[-1]
-    return h_cov * jnp.matmul(motion_a, speed, precision=jax.lax.Precision.HIGHEST) * (1 + (n + 64) * eps)
-
-
 def self_clearance(p_world_a, p_world_b, radius, h_cov, speed, guard_m, first, second, motion_a, margin_m, skip):
     """``(g, guard, capsule1, capsule2)`` of the checked pair with the smallest ``g - guard`` on one
     interval (module docstring), from the interval test's placed segments, covering radius and
@@ -377,7 +372,7 @@ def self_clearance(p_world_a, p_world_b, radius, h_cov, speed, guard_m, first, s
     dist = jax.vmap(segment_segment_distance)(p_world_a[first], p_world_b[first], p_world_a[second],
                                               p_world_b[second])
     dist = dist.astype(speed.dtype) * (1 - K_DIST_REL * eps_g)
-    shell = (radius[first] + radius[second] + pair_motion(h_cov, speed, motion_a) + margin_m) * (1 + 4 * eps)
+    shell = (radius[first] + radius[second] + motion_radii(motion_a, h_cov, speed) + margin_m) * (1 + 4 * eps)
     g = jnp.where(skip, jnp.inf, dist - shell)
     guard = guard_m[first] + guard_m[second]
     k = jnp.argmin(g - guard)  # a NaN is picked first (NumPy semantics) and never certifies
@@ -388,7 +383,7 @@ def self_clearance_np(p_world_a, p_world_b, radius, h_cov, speed, guard_m, pairs
     """NumPy float64 reference of :func:`self_clearance` (the exact segment distance)."""
     eps = float(np.finfo(np.float64).eps)
     speed = np.asarray(speed, np.float64)
-    b = h_cov * (pairs.motion_a @ speed) * (1 + (len(speed) + 64) * eps)
+    b = motion_radii(pairs.motion_a, h_cov, speed)  # the relative motion of each pair
     best, out = math.inf, (math.inf, 0.0, -1, -1)
     for p, (c1, c2) in enumerate(zip(pairs.first, pairs.second)):
         dist = segment_segment_distance_np(p_world_a[c1], p_world_b[c1], p_world_a[c2], p_world_b[c2])
@@ -398,3 +393,19 @@ def self_clearance_np(p_world_a, p_world_b, radius, h_cov, speed, guard_m, pairs
         if g - guard < best or (math.isnan(g) and not math.isnan(best)):
             best, out = g - guard, (g, guard, int(c1), int(c2))
     return out
+
+
+def self_stage(pl, radius, bounds, first, second, motion_a, margin_m, skip):
+    """The self stage of the leaf test (:mod:`larc_jax.leaf`) on one placed interval
+    (:class:`~larc_jax.placement.Placement`): :func:`self_clearance`'s ``(g, guard, capsule1,
+    capsule2)``, ``g`` NaN where the placement is not finite. ``radius``: (C,) float64."""
+    g, guard, c1, c2 = self_clearance(pl.p_world_a, pl.p_world_b, radius, pl.h_cov, pl.speed, bounds.guard_m,
+                                      first, second, motion_a, margin_m, skip)
+    return jnp.where(pl.finite, g, jnp.nan), guard, c1, c2
+
+
+def self_stage_np(pl, radius, bounds, pairs: SelfPairs, skip=None) -> LeafRecord:
+    """NumPy float64 twin of :func:`self_stage`, as a :class:`~larc_jax.leaf.LeafRecord`."""
+    g, guard, c1, c2 = self_clearance_np(pl.p_world_a, pl.p_world_b, np.asarray(radius, np.float64), pl.h_cov,
+                                         pl.speed, bounds.guard_m, pairs, skip)
+    return self_record(g if pl.finite else math.nan, guard, c1, c2)
