@@ -453,7 +453,7 @@ def test_subprocess_bad_inputs_one_line(tmp_path):
 # ------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("module", ["cli.py", "explain.py"])
+@pytest.mark.parametrize("module", ["cli.py", "explain.py", "explain_draw.py"])
 def test_cli_writes_outputs_atomically(module):
     """Every file the CLI writes goes through larc_jax.io's atomic writers (temp file + rename):
     no direct write_text / write_bytes / json.dump / open(..., "w") in the command-line modules."""

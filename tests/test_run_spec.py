@@ -128,16 +128,23 @@ def test_manifest_with_self_collision_and_tolerance_resumes_only_the_same_spec(t
     assert "different spec.self_margin_m" in capsys.readouterr().err
 
 
-def test_explain_decides_a_leaf_with_the_results_spec(robot, capsules):
-    """explain re-evaluates a leaf with the result's enclosure, tolerance and self test: a leaf the
-    hull stage passed is explained as passed by it, with the recorded clearance and guard."""
-    from larc_jax.explain import explain
-
+@pytest.fixture(scope="module")
+def explained(robot, capsules):
+    """reach_left in the cell, certified with the hull cascade, a tracking tolerance and the self
+    test: its leaves are decided by the capsule test, the hull test and self pairs."""
     from .test_cli import CELL, OK
 
     scene, traj = lj.read_scene(CELL), lj.read_trajectory(OK, robot)
     spec = RunSpec(method="reference", max_depth=4, tracking_tolerance=0.0005, self_collision=True)
-    result = lj.certify([traj], scene, robot, capsules, spec=spec)[0]
+    return scene, traj, spec, lj.certify([traj], scene, robot, capsules, spec=spec)[0]
+
+
+def test_explain_decides_a_leaf_with_the_results_spec(robot, capsules, explained):
+    """explain re-evaluates a leaf with the result's enclosure, tolerance and self test: a leaf the
+    hull stage passed is explained as passed by it, with the recorded clearance and guard."""
+    from larc_jax.explain import explain
+
+    scene, traj, spec, result = explained
     assert result.spec == lj.certify([traj], scene, robot, capsules, spec=spec).spec
     stages = {leaf.stage for leaf in result.leaves}
     assert "hull" in stages or "capsule" in stages
@@ -146,6 +153,63 @@ def test_explain_decides_a_leaf_with_the_results_spec(robot, capsules):
         assert ex.decided_clearance_m == leaf.clearance_m and ex.guard_m == leaf.guard_m
         assert (ex.stage != "") == leaf.certified
         assert ex.stage == ("self" if leaf.other_capsule else leaf.stage or "")
+
+
+def _red_shapes(ax):
+    """The red boxes and the red polygons without a gid (capsules, shells) of one view."""
+    from matplotlib.colors import to_rgb
+    from matplotlib.patches import Polygon, Rectangle
+
+    red = to_rgb("#c62828")
+    shade = [p for p in ax.patches if tuple(p.get_facecolor()[:3]) == red]
+    return ([p for p in shade if isinstance(p, Rectangle)],
+            [p for p in shade if isinstance(p, Polygon) and not p.get_gid()])
+
+
+def test_explain_draws_the_hull_part_or_self_pair_that_decided_the_leaf(robot, capsules, explained):
+    """A leaf the hull test decided is drawn with its hull part (the projection of its placed
+    vertices), its shell and its box in red, no capsule red; a leaf a self pair decided with both
+    capsules of the pair and their shells red, and no box red. Figures are built, not rasterised."""
+    from larc_jax.explain import explain
+    from larc_jax.explain_draw import convex_hull_2d, figure
+
+    scene, traj, _, result = explained
+    views = ((0, 1), (0, 2), (1, 2))
+    ex = explain(robot, capsules, traj, scene, result, next(lf for lf in result.leaves if lf.stage == "hull"))
+    part = ex.part
+    assert part is not None and ex.pair is None and ex.stage == "hull"
+    assert part.lower_bound_m - part.reach_m == pytest.approx(ex.decided_clearance_m, abs=1e-12)
+    d = float(np.linalg.norm(part.closest[0] - part.closest[1]))
+    assert part.lower_bound_m <= d <= part.lower_bound_m + 1e-4  # the proven bound is below and near
+    fig = figure(ex, robot, capsules, traj, scene, result)
+    grow = part.reach_m + ex.guard_m
+    for ax, (i, j) in zip(fig.axes, views):
+        drawn = {p.get_gid(): p for p in ax.patches if p.get_gid()}
+        flat = part.vertices_m[:, [i, j]]
+        np.testing.assert_allclose(drawn["hull_part"].get_xy()[:-1], convex_hull_2d(flat))
+        shell = drawn["hull_shell"].get_xy()
+        np.testing.assert_allclose(shell.max(axis=0), flat.max(axis=0) + grow, rtol=0, atol=3e-3 * grow)
+        np.testing.assert_allclose(shell.min(axis=0), flat.min(axis=0) - grow, rtol=0, atol=3e-3 * grow)
+        boxes, polygons = _red_shapes(ax)
+        assert [tuple(b.get_xy()) for b in boxes] == [tuple(scene.lo[ex.box, [i, j]])] and not polygons
+
+    ex = explain(robot, capsules, traj, scene, result, next(lf for lf in result.leaves if lf.other_capsule))
+    pair = [ex.capsule, ex.other_capsule]
+    assert ex.pair is not None and ex.part is None and ex.box == -1 and min(pair) >= 0
+    radii = np.r_[ex.radius[pair], ex.pair_shell_radius]
+    fig = figure(ex, robot, capsules, traj, scene, result)
+    for ax, (i, j) in zip(fig.axes, views):
+        boxes, polygons = _red_shapes(ax)
+        assert not boxes and len(polygons) == 4
+        found = []
+        for poly in polygons:  # each red polygon: the points at one distance from one pair axis
+            xy = poly.get_xy()
+            for c, r in zip(pair + pair, radii):
+                a, b = ex.seg_a[c, [i, j]], ex.seg_b[c, [i, j]]
+                s = np.clip((xy - a) @ (b - a) / max(float((b - a) @ (b - a)), 1e-300), 0, 1)
+                if np.allclose(np.linalg.norm(xy - a - s[:, None] * (b - a), axis=1), r, rtol=1e-9, atol=1e-12):
+                    found.append((c, r))
+        assert sorted(found) == sorted(zip(pair + pair, radii))
 
 
 def test_stream_takes_one_spec(robot, capsules, few):
