@@ -298,7 +298,10 @@ def _spec(doc: dict, source: str) -> RunSpec:
         raise LarcInputError(f"{source}: unknown certificate version {short_repr(doc.get('version'), 40)} (this "
                              f"checker reads version {CERTIFICATE_VERSION})")
     check_certificate_fields(doc, source)
-    return RunSpec.from_dict(_get(doc, "parameters", source, dict), "parameters")
+    params = _get(doc, "parameters", source, dict)
+    for f in dataclasses.fields(RunSpec):  # a certificate states its whole spec: no field read as a default
+        _get(params, f.name, "parameters")
+    return RunSpec.from_dict(params, "parameters")
 
 
 def _check_model(spec: RunSpec, rob) -> None:
