@@ -29,6 +29,13 @@ Trajectories the certificate does not claim certified are not checked. The first
 raises :class:`Refuted` naming the trajectory, the leaf and why (``larc verify`` exit 1); a
 missing or malformed file or an unknown format version is :class:`LarcInputError` (exit 2).
 
+Parameters. They are the run's :class:`~larc_jax.run_spec.RunSpec` (``parameters``, format
+version 3), read with :meth:`~larc_jax.run_spec.RunSpec.from_dict` (:meth:`~larc_jax.run_spec.RunSpec.from_json`'s
+rules: every field present, known and valid, else one line naming it); its model fields must be
+the robot loaded (stated joints, active joints). A version-2 certificate (parameters of its own,
+written before the run spec) is refused with a message to re-certify: reading it would keep a
+second parser of parameters alive, and re-certifying costs one ``larc certify`` run.
+
 What was checked is reported (:class:`~larc_jax.verify_report.VerifyReport`, also carried by a
 :class:`Refuted` up to the refutation): every file read with the SHA-256 of its bytes and whether
 the caller supplied it or the certificate named it, the parameters (always the certificate's),
