@@ -21,14 +21,14 @@ import yaml
 from larc_jax.certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION
 from larc_jax.enclosure.robot_file import default_capsule_path
 from larc_jax.errors import LarcInputError
+from larc_jax.run_spec import RunSpec
 from larc_jax.verify import Refuted, verify_certificate
 from larc_jax.verify_report import report_lines
 
 
 def _bare_certificate(tmp_path: Path, **parameters) -> Path:
     doc = {"format": CERTIFICATE_FORMAT, "version": CERTIFICATE_VERSION, "trajectories": [],
-           "parameters": {"margin_m": 0.01, "max_depth": 4, "dtype": "float64", "enclosure": "capsules",
-                          "ignore_links": [], **parameters}}
+           "parameters": {**RunSpec(max_depth=4, enclosure="capsules").to_dict(), **parameters}}
     path = tmp_path / "bare.json"
     path.write_text(json.dumps(doc))
     return path
@@ -121,3 +121,14 @@ def test_a_trajectory_not_claimed_certified_can_be_pinned(arm5, tmp_path):
     with pytest.raises(Refuted, match="pin --all-certified: trajectory 'still' is not claimed certified"):
         verify_certificate(path, all_certified=True)
     assert verify_certificate(arm5, all_certified=True).checked == 1
+
+
+def test_a_certificate_states_its_whole_run_spec(tmp_path):
+    """A run-spec field left out is refused, not read as its default (the claim would then be one
+    the certificate never stated)."""
+    path = _bare_certificate(tmp_path)
+    doc = json.loads(path.read_text())
+    del doc["parameters"]["margin_m"]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(LarcInputError, match=r"parameters: missing field 'margin_m'"):
+        verify_certificate(path)
