@@ -29,7 +29,7 @@ defer_jax()
 
 import numpy as np  # noqa: E402
 
-from .certificate import CERTIFICATE_FORMAT, unhexf  # noqa: E402
+from .certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION, unhexf  # noqa: E402
 from .certificate_fields import check_certificate_fields  # noqa: E402
 from .enclosure.capsule import CapsuleModel  # noqa: E402
 from .enclosure.hull import HullModel  # noqa: E402
@@ -125,6 +125,9 @@ def read_view_certificate(path) -> ViewData:
     doc = parse_json(read_input_text(Path(path), "certificate"), source)
     if not isinstance(doc, dict) or doc.get("format") != CERTIFICATE_FORMAT:
         raise LarcInputError(f"{source}: not a larc certificate (format {CERTIFICATE_FORMAT!r} expected)")
+    if doc.get("version") != CERTIFICATE_VERSION:
+        raise LarcInputError(f"{source}: certificate version {str(doc.get('version'))[:20]}, this viewer reads version "
+                             f"{CERTIFICATE_VERSION} (re-certify with larc certify --certificate)")
     check_certificate_fields(doc, source)
     rdoc, spec = doc["robot"], RunSpec.from_dict(doc["parameters"], f"{source}: parameters")
     stated = {str(j): unhexf(v) for j, v in (rdoc.get("stated_joints") or {}).items()}
