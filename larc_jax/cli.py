@@ -153,8 +153,7 @@ def _certificate_options(args):
     tolerance = getattr(args, "tracking_tolerance", None)
     try:
         return RunSpec(method=args.method, margin_m=args.margin, max_depth=args.max_depth, enclosure=args.enclosure,
-                       velocities=args.velocities, dtype=getattr(args, "dtype", "float64"),
-                       self_collision=self_collision,
+                       velocities=args.velocities, dtype=args.dtype, self_collision=self_collision,
                        self_margin_m=0.0 if self_margin is None else self_margin, self_skip=self_skip,
                        tracking_tolerance=None if tolerance is None else parse_tracking_tolerance(tolerance),
                        hold=_hold(args), joints=tuple(_joints(args) or ()),

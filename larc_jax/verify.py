@@ -299,8 +299,9 @@ def _spec(doc: dict, source: str) -> RunSpec:
     """The run spec the certificate records (``parameters``), read by :meth:`RunSpec.from_json`'s
     rules: every field known and valid, or a one-line :class:`LarcInputError`."""
     if doc.get("version") == 2:
-        raise LarcInputError(f"{source}: a version-2 certificate (parameters of its own, before the run spec); this "
-                             f"checker reads version {CERTIFICATE_VERSION}: re-certify (larc certify ... --certificate)")
+        raise LarcInputError(f"{source}: a version-2 certificate (parameters of its own, before the run spec); "
+                             f"this checker reads version {CERTIFICATE_VERSION}: re-certify (larc certify ... "
+                             "--certificate)")
     if doc.get("version") != CERTIFICATE_VERSION:
         raise LarcInputError(f"{source}: unknown certificate version {short_repr(doc.get('version'), 40)} (this "
                              f"checker reads version {CERTIFICATE_VERSION})")

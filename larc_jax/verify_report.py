@@ -284,7 +284,8 @@ class VerifyPins:
                      if getattr(self, n) is not None and getattr(self, n) is not False]
             self._refute(asked[0], "the certificate does not certify self-collision")
         if self.self_margin_at_least_m is not None and not spec.self_margin_m >= self.self_margin_at_least_m:
-            self._refute("self_margin_at_least_m", f"the certificate's self-collision margin is {spec.self_margin_m!r} m")
+            self._refute("self_margin_at_least_m",
+                         f"the certificate's self-collision margin is {spec.self_margin_m!r} m")
         if self.no_self_skip and spec.self_skip:
             self._refute("no_self_skip", f"the certificate skips the pairs {', '.join(spec.self_skip)}")
 
