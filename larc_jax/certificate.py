@@ -5,9 +5,13 @@
 
 What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
 
-* ``parameters``: method, margin rho, maximum depth, geometry dtype, links left out, the
-  enclosure (``capsules`` or the ``hull`` cascade), the tracking tolerance per joint and the
-  self-collision test (its margin and the pairs the user skipped), if any.
+* ``parameters``: the run's :class:`~larc_jax.run_spec.RunSpec` (``result.spec``) as
+  :meth:`~larc_jax.run_spec.RunSpec.to_json` writes it (every field; floats as Python's shortest
+  repr, exact): method, margin rho, maximum depth, enclosure (``capsules`` or the ``hull``
+  cascade), geometry dtype, velocity mode, tracking tolerance, self-collision test (margin, pairs
+  the user skipped), stated joints (``hold``), active joints, links left out (``ignore_links``).
+  ``larc verify`` reads it back with :meth:`~larc_jax.run_spec.RunSpec.from_json` (version 3;
+  version 2 recorded its own parameters and is refused: re-certify).
 * ``robot``: the robot file (path as given, ``null`` for PIPER's shipped capsule file) and the
   SHA-256 of its bytes, the URDF path and SHA-256, the collision geometry the capsules were
   proven on (every mesh's SHA-256, as :func:`~larc_jax.enclosure.meshes.collision_geometry`
@@ -25,7 +29,7 @@ What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
   capsule and box index (-1: no pair), the second capsule of a self pair, the stage that passed
   it).
 
-Every float is written with :meth:`float.hex` (exact: ``float.fromhex`` gives the same double
+Every float outside ``parameters`` is written with :meth:`float.hex` (exact: ``float.fromhex`` gives the same double
 back, ``inf`` and ``nan`` included), so interval ends and clearances are the computed values
 bit for bit. The document is written atomically (temporary file, then ``os.replace``).
 
@@ -35,11 +39,18 @@ or by any execution within the tracking tolerance) is more than rho from every b
 scene (each link proven by its capsules or, with the cascade, its hull parts), and, with the
 self-collision test, no checked pair of links comes within its margin; it assumes the hashed
 files, the held joint values (stated or enclosed over their stroke), and that links named in
-``excluded_links`` are not checked at all.
+``ignore_links`` are not checked at all.
+
+Hull parts. ``larc verify`` proves, and tests with, the hull parts the robot file's split planes
+build (:func:`~larc_jax.enclosure.proof.prove_enclosures`): a result certified with other parts
+(``certify(hulls=...)``) is refused here when they are given (``hulls=``, as to ``certify``);
+without ``hulls=`` the robot file's parts are assumed, and a result certified with others is
+refuted by ``larc verify`` (its stored clearances are not the recomputed ones).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -48,6 +59,7 @@ from typing import Sequence
 import numpy as np
 
 from .enclosure.capsule import CapsuleModel
+from .enclosure.hull import HullModel, hull_model
 from .enclosure.meshes import collision_geometry
 from .errors import LarcInputError
 from .interval import trajectory_rounding
@@ -55,14 +67,16 @@ from .leaf_reference import leaf_enclosures
 from .io import atomic_write_text
 from .results import DatasetResult
 from .robot import JointType, Robot
+from .run_spec import RunSpec
 from .scene import Scene
+from .tracking import check_tracking_tolerance
 from .urdf import file_sha256
 
 __all__ = ["CERTIFICATE_FORMAT", "CERTIFICATE_VERSION", "certificate", "write_certificate", "hexf", "unhexf",
            "file_sha256", "trajectory_sha256", "scene_sha256", "robot_file_path"]
 
 CERTIFICATE_FORMAT = "larc-certificate"
-CERTIFICATE_VERSION = 2
+CERTIFICATE_VERSION = 3
 
 
 def hexf(x) -> str:
@@ -133,17 +147,57 @@ def _leaf_columns(result: DatasetResult, i: int, box_offset: int) -> dict:
     }
 
 
+def _certified_spec(result: DatasetResult, velocities: str | None) -> RunSpec:
+    """The run spec the certificate records: the result's (with the velocity mode the files were
+    read with), refused if the result's own fields say another run."""
+    spec = result.spec
+    if spec is None:
+        raise LarcInputError("certificate: the result carries no run spec (result.spec is None: not made by "
+                             "larc_jax.certify); certify the trajectories to write a certificate")
+    if velocities is not None:
+        spec = dataclasses.replace(spec, velocities=velocities)  # validated again
+    have = {"method": result.method, "margin_m": float(result.margin_m), "max_depth": int(result.max_depth),
+            "enclosure": result.enclosure, "dtype": result.dtype, "ignore_links": tuple(result.excluded_links)}
+    differ = [k for k, v in have.items() if getattr(spec, k) != (v if k != "ignore_links" else tuple(v))]
+    if differ:
+        raise LarcInputError(f"certificate: the result's {differ[0]} {have[differ[0]]!r} is not its spec's "
+                             f"{getattr(spec, differ[0])!r} (a result edited after certify)")
+    return spec
+
+
+def _same_hulls(a: HullModel, b: HullModel) -> bool:
+    arrays = ("vertices", "centre", "probes", "radius", "motion_a")
+    return (a.names, a.link_names, a.n_vertices, a.padding_m) == (b.names, b.link_names, b.n_vertices, b.padding_m) \
+        and all(np.array_equal(np.asarray(getattr(a, k)), np.asarray(getattr(b, k))) for k in arrays)
+
+
+def _certified_hulls(robot: Robot, capsules: CapsuleModel, enclosure: str, hulls: HullModel | None):
+    """The hull parts the certificate relies on (module docstring, "Hull parts"): those the robot
+    file's split planes build, which ``larc verify`` proves; ``hulls`` (what certify was given)
+    must be exactly those."""
+    if enclosure != "hull" or hulls is None:
+        return None
+    own = hull_model(robot, capsules.hull_parts, capsules.padding_m).on_links(capsules.link_names)
+    if not isinstance(hulls, HullModel) or not _same_hulls(own, hulls.on_links(capsules.link_names)):
+        raise LarcInputError("certificate: the result was certified with hull parts (hulls=) other than the ones the "
+                             "robot file's hull_parts build, and larc verify proves only those: write the split "
+                             "planes into the robot file (hull_parts) and certify without hulls=")
+    return own
+
+
 def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsules: CapsuleModel, *,
                 robot_file=None, trajectory_files: Sequence | None = None, scene_files: Sequence | None = None,
-                velocities: str | None = None) -> dict:
+                velocities: str | None = None, hulls: HullModel | None = None) -> dict:
     """The certificate document of ``result`` (a dict; :func:`write_certificate` writes it).
 
     ``trajectories``, ``scenes``, ``robot`` and ``capsules`` are what :func:`~larc_jax.certify`
-    was given (one scene or one per trajectory). ``robot_file``: the robot file they came from
+    was given (one scene or one per trajectory), ``hulls`` the hull parts if it was given them
+    (module docstring, "Hull parts"). ``robot_file``: the robot file they came from
     (``None``: PIPER's shipped one). ``trajectory_files`` / ``scene_files`` (optional, one per
     trajectory / scene): the files read, whose bytes are then hashed too; ``velocities``: the
-    mode they were read with (:func:`~larc_jax.read_trajectory`).
+    mode they were read with (:func:`~larc_jax.read_trajectory`; default: the spec's).
     """
+    spec = _certified_spec(result, velocities)
     trajectories = [trajectories] if not isinstance(trajectories, (list, tuple)) else list(trajectories)
     per_traj = [scenes] * len(trajectories) if isinstance(scenes, Scene) else list(scenes)
     if len(trajectories) != len(result.ids) or len(per_traj) != len(trajectories):
@@ -169,15 +223,16 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
     tfiles = list(trajectory_files) if trajectory_files is not None else [None] * len(trajectories)
     if len(tfiles) != len(trajectories):
         raise LarcInputError(f"certificate: {len(trajectories)} trajectories but {len(tfiles)} trajectory files")
-    delta = None if not result.tracking_tolerance else np.array([x for _, x in result.tracking_tolerance])
-    enc = leaf_enclosures(robot, capsules, result.enclosure, delta)
+    delta = check_tracking_tolerance(spec.tolerance_arg(), robot)
+    enc = leaf_enclosures(robot, capsules, spec.enclosure, delta,
+                          _certified_hulls(robot, capsules, spec.enclosure, hulls))
     traj_docs = []
     for i, (traj, scene, f) in enumerate(zip(trajectories, per_traj, tfiles)):
         s = unique.index(id(scene))
-        bnd = trajectory_rounding(traj, robot, enc.capsules, result.dtype, enc.hulls)
+        bnd = trajectory_rounding(traj, robot, enc.capsules, spec.dtype, enc.hulls)
         traj_docs.append({
             "id": traj.id, "file": None if f is None else str(f), "sha256": None if f is None else file_sha256(f),
-            "arrays_sha256": trajectory_sha256(traj), "velocities": velocities, "scene": s,
+            "arrays_sha256": trajectory_sha256(traj), "velocities": spec.velocities, "scene": s,
             "certified": bool(result.certified[i]),
             "t_start": hexf(traj.t[0]), "t_end": hexf(traj.t[-1]),
             "rounding": {"offset_s": hexf(bnd.offset_s), "tau_s": hexf(bnd.tau_s),
@@ -188,13 +243,7 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
         })
     return {
         "format": CERTIFICATE_FORMAT, "version": CERTIFICATE_VERSION, "float_encoding": "float.hex",
-        "parameters": {"method": result.method, "margin_m": hexf(result.margin_m), "max_depth": int(result.max_depth),
-                       "dtype": result.dtype, "excluded_links": list(result.excluded_links),
-                       "enclosure": result.enclosure,
-                       "tracking_tolerance": {j: hexf(x) for j, x in result.tracking_tolerance} or None,
-                       "self_collision": None if result.self_margin_m is None else {
-                           "margin_m": hexf(result.self_margin_m),
-                           "skip": [f"{a}:{b}" for a, b, why in result.self_skipped if why == "skipped"]}},
+        "parameters": json.loads(spec.to_json()),
         "robot": _robot_section(robot, capsules, robot_file),
         "scenes": scene_docs,
         "trajectories": traj_docs,

@@ -5,13 +5,18 @@ field it skipped could carry a claim it never checked. No JAX, no NumPy: ``larc 
 it.
 
 Mappings keyed by names rather than fields (``robot.geometry``, ``robot.held_joints``,
-``robot.stated_joints``, ``parameters.tracking_tolerance``: link and joint names) are not
-checked here; the checker compares them with what it derives.
+``robot.stated_joints``, ``parameters.hold``, ``parameters.tracking_tolerance``: link and joint
+names) are not checked here; the checker compares them with what it derives. ``parameters`` is a
+:class:`~larc_jax.run_spec.RunSpec` (its fields, which
+:meth:`~larc_jax.run_spec.RunSpec.from_dict` also holds to).
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 from .io import check_keys
+from .run_spec import RunSpec
 
 __all__ = ["CERTIFICATE_FIELDS", "check_certificate_fields"]
 
@@ -21,9 +26,7 @@ _TRAJECTORY = {
 }
 CERTIFICATE_FIELDS = {
     "": {"format", "version", "float_encoding", "parameters", "robot", "scenes", "trajectories"},
-    "parameters": {"method", "margin_m", "max_depth", "dtype", "excluded_links", "enclosure", "tracking_tolerance",
-                   "self_collision"},
-    "parameters.self_collision": {"margin_m", "skip"},
+    "parameters": {f.name for f in dataclasses.fields(RunSpec)},
     "robot": {"file", "sha256", "urdf", "urdf_sha256", "geometry", "active_joints", "held_joints", "stated_joints",
               "capsules"},
     "scenes[]": {"file", "sha256", "arrays_sha256", "name", "boxes"},

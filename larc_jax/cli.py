@@ -138,7 +138,7 @@ def _certify_with_progress(args, spec, trajectories, scene, robot, capsules):
 
 _SPEC_OPTIONS = {"margin_m": "--margin", "max_depth": "--max-depth", "tracking_tolerance": "--tracking-tolerance",
                  "self_margin_m": "--self-margin", "self_skip": "--self-skip", "ignore_links": "--ignore-link",
-                 "hold": "--hold", "joints": "--joints"}
+                 "hold": "--hold", "joints": "--joints", "dtype": "--dtype"}
 
 
 def _certificate_options(args):
@@ -153,7 +153,7 @@ def _certificate_options(args):
     tolerance = getattr(args, "tracking_tolerance", None)
     try:
         return RunSpec(method=args.method, margin_m=args.margin, max_depth=args.max_depth, enclosure=args.enclosure,
-                       velocities=args.velocities, self_collision=self_collision,
+                       velocities=args.velocities, dtype=args.dtype, self_collision=self_collision,
                        self_margin_m=0.0 if self_margin is None else self_margin, self_skip=self_skip,
                        tracking_tolerance=None if tolerance is None else parse_tracking_tolerance(tolerance),
                        hold=_hold(args), joints=tuple(_joints(args) or ()),
@@ -324,10 +324,12 @@ def _cmd_explain(args) -> int:
         raise LarcInputError(f"{out}: cannot write the picture ({exc.strerror or exc})") from None
     if not args.quiet:
         status = "CERTIFIED" if result.certified else "UNCERTIFIED"
-        pair = f"capsule {leaf.capsule} / box {leaf.box}" if leaf.box else "no boxes"
+        pair = f"capsules {leaf.capsule} / {leaf.other_capsule}" if leaf.other_capsule else \
+            f"capsule {leaf.capsule} / box {leaf.box}" if leaf.box else "no boxes"
+        decided = f", passed by the {ex.stage} test" if ex.stage else ""
         print(f"{result.id}: {status}; {describe_leaf(result, leaf)}: t=[{leaf.t0:.4f}, {leaf.t1:.4f}] s "
-              f"(depth {leaf.depth}), {pair}, clearance {format_clearance(leaf.clearance_m)}")
-        if ex.capsule >= 0:
+              f"(depth {leaf.depth}), {pair}, clearance {format_clearance(leaf.clearance_m)}{decided}")
+        if ex.capsule >= 0 and ex.box >= 0:
             c = ex.capsule
             print(f"  axis-to-box distance {ex.distance_m * 1000:.2f} mm vs shell r + margin + motion "
                   f"= {ex.radius[c] * 1000:.2f} + {ex.margin_m * 1000:.2f} + {ex.motion_b[c] * 1000:.2f} mm")

@@ -13,9 +13,10 @@ import argparse
 from .defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, DEFAULT_PADDING_M,
                        ENCLOSURES, METHODS, VELOCITY_MODES)
 from .errors import OneLineError
+from .run_spec import DTYPES
 from .verify_report import VerifyPins
 
-__all__ = ["UsageError", "ArgumentParser", "build_parser"]
+__all__ = ["UsageError", "ArgumentParser", "build_parser", "spec_options"]
 
 
 def output_options(in_subcommand: bool) -> argparse.ArgumentParser:
@@ -67,6 +68,36 @@ def gripper_options(p: argparse.ArgumentParser, explain: bool = False) -> None:
                             "open; capsules: the capsule test alone (the paper's model)")
 
 
+def spec_options(p: argparse.ArgumentParser, explain: bool = False) -> None:
+    """The options of the run spec (:class:`~larc_jax.run_spec.RunSpec`) that certify and explain
+    share, so every option works in both (``--method`` is certify's own)."""
+    p.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
+                   help="recorded: use the file's velocities (default; a file without them is "
+                        "refused); finite-difference: compute them from the positions (the "
+                        "certificate then covers the Hermite curve through those velocities)")
+    p.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,
+                   help=f"clearance margin rho, m (default {DEFAULT_MARGIN_M})")
+    p.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
+                   help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
+    p.add_argument("--dtype", default=DTYPES[0], choices=DTYPES,
+                   help="geometry dtype: float64 (default) or float32 (the guard accounts for it; "
+                        "--method reference is always float64)")
+    p.add_argument("--self-collision", action="store_true",
+                   help="also certify that no two links come into contact (capsule pairs not joined by a joint; "
+                        "see larc_jax.self_collision); the output names the pairs not checked")
+    p.add_argument("--self-margin", type=float, default=None, metavar="M",
+                   help="with --self-collision: required distance between links, m (default 0: touching fails)")
+    p.add_argument("--self-skip", action="append", metavar="LINK:LINK",
+                   help="with --self-collision: do not check this link pair (repeatable; named in the output)")
+    p.add_argument("--tracking-tolerance", metavar="RAD|JOINT=V,...",
+                   help="certify every executed trajectory within this joint tracking error of the planned one: "
+                        "one value for all active joints (rad; m for prismatic joints) or JOINT=VALUE,... (others 0)")
+    p.add_argument("--ignore-link", action="append", metavar="LINK",
+                   help="leave this link out of the certificate (repeatable): only a link that never "
+                        "moves, e.g. a fixed base standing on its table; the output names it")
+    gripper_options(p, explain)
+
+
 def build_parser(description: str = "") -> argparse.ArgumentParser:
     """The parser of every subcommand; ``args.command`` names the one given."""
     p = ArgumentParser(
@@ -113,30 +144,9 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
     c.add_argument("--scene",
                    help="scene YAML {frame, boxes: [{name, min, max}]} or MoveIt .scene text (boxes); "
                         "required unless --manifest")
-    c.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
-                   help="recorded: use the file's velocities (default; a file without them is "
-                        "refused); finite-difference: compute them from the positions (the "
-                        "certificate then covers the Hermite curve through those velocities)")
     c.add_argument("--method", default=METHODS[0], choices=METHODS)
-    c.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,
-                   help=f"clearance margin rho, m (default {DEFAULT_MARGIN_M})")
-    c.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
-                   help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     c.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
-    c.add_argument("--self-collision", action="store_true",
-                   help="also certify that no two links come into contact (capsule pairs not joined by a joint; "
-                        "see larc_jax.self_collision); the output names the pairs not checked")
-    c.add_argument("--self-margin", type=float, default=None, metavar="M",
-                   help="with --self-collision: required distance between links, m (default 0: touching fails)")
-    c.add_argument("--self-skip", action="append", metavar="LINK:LINK",
-                   help="with --self-collision: do not check this link pair (repeatable; named in the output)")
-    c.add_argument("--tracking-tolerance", metavar="RAD|JOINT=V,...",
-                   help="certify every executed trajectory within this joint tracking error of the planned one: "
-                        "one value for all active joints (rad; m for prismatic joints) or JOINT=VALUE,... (others 0)")
-    c.add_argument("--ignore-link", action="append", metavar="LINK",
-                   help="leave this link out of the certificate (repeatable): only a link that never "
-                        "moves, e.g. a fixed base standing on its table; the output names it")
-    gripper_options(c)
+    spec_options(c)
     c.add_argument("--json", metavar="OUT.json", help="write per-trajectory results as JSON")
     c.add_argument("--certificate", metavar="OUT.json",
                    help="write a certificate file: the leaf cover (exact floats), parameters, rounding bounds "
@@ -179,21 +189,16 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
     e = sub.add_parser(
         "explain", parents=common,
         help="certify one trajectory and draw the interval that blocks it (or its tightest one)",
-        description="Certify one trajectory (LARC) and draw one leaf: the capsules at the interval "
-                    "midpoint, their shells r + margin + motion radius, the boxes (the blocking one "
-                    "in red), the gripper path and every leaf's clearance. Exit status: 0 picture "
-                    "written (certified or not), 2 bad input, 3 internal error.")
+        description="Certify one trajectory (LARC, with the run-spec options as for certify: enclosure, "
+                    "tracking tolerance, self-collision, dtype...) and draw one leaf, decided by that whole "
+                    "test: the capsules at the interval midpoint, their shells r + margin + motion radius, the "
+                    "boxes (the blocking one in red; for a self-collision leaf, its two capsules), the gripper "
+                    "path and every leaf's clearance. Exit status: 0 picture written (certified or not), 2 bad "
+                    "input, 3 internal error.")
     e.add_argument("trajectory", metavar="TRAJ_FILE", help="one trajectory file (as for certify)")
     e.add_argument("--scene", required=True, help="scene file (as for certify)")
     e.add_argument("--robot", help="robot file from 'larc fit-capsules' (default: PIPER)")
-    e.add_argument("--ignore-link", action="append", metavar="LINK", help="as for certify")
-    gripper_options(e, explain=True)
-    e.add_argument("--velocities", default="recorded", choices=VELOCITY_MODES,
-                   help="as for certify")
-    e.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,
-                   help=f"clearance margin rho, m (default {DEFAULT_MARGIN_M})")
-    e.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
-                   help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
+    spec_options(e, explain=True)
     e.add_argument("--leaf", choices=["first", "worst"], default="first",
                    help="first: the first inconclusive leaf (the one certify names), or the "
                         "tightest leaf of a certified trajectory (default); worst: the leaf with "

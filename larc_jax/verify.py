@@ -29,6 +29,13 @@ Trajectories the certificate does not claim certified are not checked. The first
 raises :class:`Refuted` naming the trajectory, the leaf and why (``larc verify`` exit 1); a
 missing or malformed file or an unknown format version is :class:`LarcInputError` (exit 2).
 
+Parameters. They are the run's :class:`~larc_jax.run_spec.RunSpec` (``parameters``, format
+version 3), read with :meth:`~larc_jax.run_spec.RunSpec.from_dict` (:meth:`~larc_jax.run_spec.RunSpec.from_json`'s
+rules: every field present, known and valid, else one line naming it); its model fields must be
+the robot loaded (stated joints, active joints). A version-2 certificate (parameters of its own,
+written before the run spec) is refused with a message to re-certify: reading it would keep a
+second parser of parameters alive, and re-certifying costs one ``larc certify`` run.
+
 What was checked is reported (:class:`~larc_jax.verify_report.VerifyReport`, also carried by a
 :class:`Refuted` up to the refutation): every file read with the SHA-256 of its bytes and whether
 the caller supplied it or the certificate named it, the parameters (always the certificate's),
@@ -73,7 +80,7 @@ import numpy as np  # noqa: E402
 from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_path, scene_sha256,  # noqa: E402
                           trajectory_sha256, unhexf)
 from .certificate_fields import check_certificate_fields  # noqa: E402
-from .defaults import VELOCITY_MODES, check_depth, check_enclosure, check_margin  # noqa: E402
+from .defaults import VELOCITY_MODES  # noqa: E402
 from .enclosure.meshes import collision_geometry  # noqa: E402
 from .enclosure.proof import EnclosureNotProven, prove_enclosures  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
@@ -82,6 +89,7 @@ from .interval import dyadic_ends, trajectory_rounding  # noqa: E402
 from .io import parse_json, read_input_bytes, read_input_text, short_repr  # noqa: E402
 from .leaf_reference import LeafEnclosures, leaf_enclosures, leaf_test_np  # noqa: E402
 from .robot import JointType  # noqa: E402
+from .run_spec import RunSpec  # noqa: E402
 from .scene import read_scene  # noqa: E402
 from .self_collision import curve_ranges, load_separation, self_pairs  # noqa: E402
 from .tracking import check_tracking_tolerance  # noqa: E402
@@ -127,16 +135,6 @@ def _ints(doc, key, where: str) -> np.ndarray:
     if big is not None:
         raise LarcInputError(f"{where}.{key}[{big}]: {short_repr(values[big], 40)} is out of range")
     return np.array(values, np.int64)
-
-
-def _names(doc, key, where: str) -> tuple[str, ...]:
-    """A list of names (links, ``LINK:LINK`` pairs): anything else would reach the pins' and
-    the report's joins as a traceback (exit 3)."""
-    values = _get(doc, key, where, list)
-    bad = next((i for i, v in enumerate(values) if not isinstance(v, str)), None)
-    if bad is not None:
-        raise LarcInputError(f"{where}.{key}[{bad}]: expected a name, got {short_repr(values[bad], 40)}")
-    return tuple(values)
 
 
 def _override(given, n: int, what: str) -> list:
@@ -297,25 +295,32 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures
     return len(t0), diff, excess
 
 
-def _parameters(params: dict) -> Parameters:
-    margin = check_margin(_float(_get(params, "margin_m", "parameters"), "parameters.margin_m"), "parameters.margin_m")
-    max_depth = check_depth(_get(params, "max_depth", "parameters", int), "parameters.max_depth")
-    dtype = _get(params, "dtype", "parameters", str)
-    if dtype not in ("float64", "float32"):
-        raise LarcInputError(f"parameters.dtype {dtype!r} is not float64 or float32")
-    enclosure = check_enclosure(_get(params, "enclosure", "parameters", str), "parameters.enclosure")
-    tol = params.get("tracking_tolerance")
-    if tol is not None and not isinstance(tol, dict):
-        raise LarcInputError("parameters.tracking_tolerance: expected a mapping joint -> float.hex() or null")
-    sc = params.get("self_collision")
-    return Parameters(
-        method=params.get("method"), margin_m=margin, max_depth=max_depth, dtype=dtype, enclosure=enclosure,
-        excluded_links=_names(params, "excluded_links", "parameters"),
-        tracking_tolerance=None if tol is None else tuple(
-            (str(j), _float(v, f"parameters.tracking_tolerance.{j}")) for j, v in tol.items()),
-        self_margin_m=None if sc is None else _float(_get(sc, "margin_m", "parameters.self_collision"),
-                                                     "parameters.self_collision.margin_m"),
-        self_skip=() if sc is None else _names(sc, "skip", "parameters.self_collision"))
+def _spec(doc: dict, source: str) -> RunSpec:
+    """The run spec the certificate records (``parameters``), read by :meth:`RunSpec.from_json`'s
+    rules: every field known and valid, or a one-line :class:`LarcInputError`."""
+    if doc.get("version") == 2:
+        raise LarcInputError(f"{source}: a version-2 certificate (parameters of its own, before the run spec); "
+                             f"this checker reads version {CERTIFICATE_VERSION}: re-certify (larc certify ... "
+                             "--certificate)")
+    if doc.get("version") != CERTIFICATE_VERSION:
+        raise LarcInputError(f"{source}: unknown certificate version {short_repr(doc.get('version'), 40)} (this "
+                             f"checker reads version {CERTIFICATE_VERSION})")
+    check_certificate_fields(doc, source)
+    params = _get(doc, "parameters", source, dict)
+    for f in dataclasses.fields(RunSpec):  # a certificate states its whole spec: no field read as a default
+        _get(params, f.name, "parameters")
+    return RunSpec.from_dict(params, "parameters")
+
+
+def _check_model(spec: RunSpec, rob) -> None:
+    """The spec's model fields are the robot the checker loaded (from the ``robot`` section)."""
+    stated = tuple(sorted((rob.joint_names[i], float(rob.q_held[i])) for i in range(rob.n_links)
+                          if rob.joint_names[i] in rob.stated_joints))
+    if spec.hold != stated:
+        raise Refuted(f"parameters.hold {dict(spec.hold)} differs from the robot's stated joints {dict(stated)}")
+    if spec.joints != tuple(rob.active_joint_names):
+        raise Refuted(f"parameters.joints {list(spec.joints)} differ from the robot's active joints "
+                      f"{list(rob.active_joint_names)}")
 
 
 def _check_ids(docs: list) -> None:
@@ -348,12 +353,12 @@ def _robot_facts(doc: dict, given, rob, capsules, cert_excluded) -> RobotFacts:
                              for x in capsules.excluded_links))
 
 
-def _read_claimed(tdoc: dict, k: int, given, rob, pins: VerifyPins):
+def _read_claimed(tdoc: dict, k: int, given, rob, pins: VerifyPins, default_mode: str):
     """Read the file of a trajectory claimed certified; returns it and its facts."""
     where = f"trajectories[{k}]"
     tid = str(_get(tdoc, "id", where))
     mode = tdoc.get("velocities")
-    mode = "recorded" if mode is None else mode  # null: the certificate's default; "" or false is no mode
+    mode = default_mode if mode is None else mode  # null: the run spec's; "" or false is no mode
     if mode not in VELOCITY_MODES:
         raise LarcInputError(f"{where}.velocities: {str(mode)[:40]!r} is not one of {', '.join(VELOCITY_MODES)}")
     pins.check_velocities(tid, mode)
@@ -408,31 +413,30 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
     doc = parse_json(read_input_text(Path(path), "certificate"), source)  # hostile JSON: one line, exit 2
     if not isinstance(doc, dict) or doc.get("format") != CERTIFICATE_FORMAT:
         raise LarcInputError(f"{source}: not a larc certificate (format {CERTIFICATE_FORMAT!r} expected)")
-    if doc.get("version") != CERTIFICATE_VERSION:
-        raise LarcInputError(f"{source}: unknown certificate version {doc.get('version')!r} (this checker reads "
-                             f"version {CERTIFICATE_VERSION})")
-    check_certificate_fields(doc, source)
-    params = _parameters(_get(doc, "parameters", source, dict))
-    est["parameters"] = params
+    spec = _spec(doc, source)
+    est["parameters"] = params = Parameters.of(spec)
     traj_docs = _get(doc, "trajectories", source, list)
     est["trajectories"] = len(traj_docs)
-    pins.check_parameters(params)
+    pins.check_parameters(spec)
     _check_ids(traj_docs)
     robot_doc = _get(doc, "robot", source, dict)
-    rob, capsules = _load_robot(robot_doc, robot, list(params.excluded_links))
-    est["robot"] = _robot_facts(robot_doc, robot, rob, capsules, params.excluded_links)
-    delta = None if params.tracking_tolerance is None else check_tracking_tolerance(
-        dict(params.tracking_tolerance), rob, "parameters.tracking_tolerance")
+    rob, capsules = _load_robot(robot_doc, robot, list(spec.ignore_links))
+    est["robot"] = _robot_facts(robot_doc, robot, rob, capsules, spec.ignore_links)
+    _check_model(spec, rob)
+    delta = check_tracking_tolerance(spec.tolerance_arg(), rob, "parameters.tracking_tolerance")
+    if delta is not None:
+        est["parameters"] = params = dataclasses.replace(params, tracking_tolerance=tuple(
+            (j, float(x)) for j, x in zip(rob.active_joint_names, delta)))
     pins.check_robot(est["robot"], rob, delta)
     robot_file = robot_file_path(robot if robot is not None else robot_doc["file"])
     try:  # module docstring, step 1b: the hull parts proven are the ones the leaf test gets
-        hulls = prove_enclosures(rob, capsules, params.enclosure == "hull", source=str(robot_file))
+        hulls = prove_enclosures(rob, capsules, spec.enclosure == "hull", source=str(robot_file))
     except EnclosureNotProven as exc:
         raise Refuted(str(exc)) from None
-    enc = leaf_enclosures(rob, capsules, params.enclosure, delta, hulls)
+    enc = leaf_enclosures(rob, capsules, spec.enclosure, delta, hulls)
     pairs = None
-    if params.self_margin_m is not None:
-        pairs = self_pairs(rob, capsules, params.self_margin_m, list(params.self_skip), proven=load_separation(rob))
+    if spec.self_collision:
+        pairs = self_pairs(rob, capsules, spec.self_margin_m, list(spec.self_skip), proven=load_separation(rob))
         est["parameters"] = dataclasses.replace(params, self_not_checked=tuple(pairs.skipped))
         pairs = pairs if pairs.n_pairs else None
     scene_docs = _get(doc, "scenes", source, list)
@@ -447,15 +451,15 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
             pins.check_claimed(str(_get(tdoc, "id", where)))
             est["trajectory_files"].append(TrajectoryFacts(id=str(_get(tdoc, "id", where)), claimed=False,
                                                            scene=tdoc.get("scene"),
-                                                           velocities=tdoc.get("velocities") or "recorded"))
+                                                           velocities=tdoc.get("velocities") or spec.velocities))
             continue
-        traj, facts = _read_claimed(tdoc, k, given, rob, pins)
+        traj, facts = _read_claimed(tdoc, k, given, rob, pins, spec.velocities)
         s = facts.scene
         if not 0 <= s < len(loaded_scenes):
             raise LarcInputError(f"{where}.scene: {s} is not a scene index (0..{len(loaded_scenes) - 1})")
         est["trajectory_files"].append(facts)
-        nl, d, e = _check_trajectory(tdoc, k, traj, loaded_scenes[s], rob, enc, params.margin_m, params.dtype,
-                                     params.max_depth, pairs, delta)
+        nl, d, e = _check_trajectory(tdoc, k, traj, loaded_scenes[s], rob, enc, spec.margin_m, spec.dtype,
+                                     spec.max_depth, pairs, delta)
         est["trajectory_files"][-1] = dataclasses.replace(facts, leaves=nl)
         checked, n_leaves, diff, excess = checked + 1, n_leaves + nl, max(diff, d), min(excess, e)
     return _report(est, checked=checked, leaves=n_leaves, max_clearance_diff_m=diff, min_excess_m=excess)

@@ -28,11 +28,10 @@ from pathlib import Path
 
 from .defaults import ENCLOSURES, VELOCITY_MODES, check_depth, check_margin
 from .errors import LarcInputError, OneLineError, one_line
+from .run_spec import DTYPES, RunSpec
 
 __all__ = ["Refuted", "VerifyPins", "VerifyReport", "InputFile", "SceneFacts", "TrajectoryFacts", "RobotFacts",
            "Parameters", "report_lines", "report_json", "input_error_json"]
-
-DTYPES = ("float64", "float32")
 
 
 class Refuted(OneLineError):
@@ -102,21 +101,33 @@ class RobotFacts:
 
 @dataclasses.dataclass(frozen=True)
 class Parameters:
-    """The run's parameters, as the certificate records them."""
+    """The run's parameters as the report shows them: the certificate's
+    :class:`~larc_jax.run_spec.RunSpec` (:meth:`of`), with what the robot decides filled in once
+    it is loaded."""
 
-    method: str | None
+    method: str
     margin_m: float
     max_depth: int
     dtype: str
     enclosure: str
     excluded_links: tuple[str, ...]
-    tracking_tolerance: tuple[tuple[str, float], ...] | None
+    tracking_tolerance: float | tuple | None
+    """As the spec states it; once the robot is loaded, (active joint, delta_j) per joint."""
     self_margin_m: float | None
     """``None``: self-collision not certified."""
     self_skip: tuple[str, ...] = ()
     """``LINK:LINK`` pairs the user skipped."""
     self_not_checked: tuple[tuple[str, str, str], ...] = ()
     """Every link pair the self test does not check, with why (set once the robot is loaded)."""
+    velocities: str = VELOCITY_MODES[0]
+
+    @classmethod
+    def of(cls, spec: RunSpec) -> "Parameters":
+        return cls(method=spec.method, margin_m=spec.margin_m, max_depth=spec.max_depth, dtype=spec.dtype,
+                   enclosure=spec.enclosure, excluded_links=spec.ignore_links,
+                   tracking_tolerance=spec.tracking_tolerance,
+                   self_margin_m=spec.self_margin_m if spec.self_collision else None, self_skip=spec.self_skip,
+                   velocities=spec.velocities)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -256,26 +267,27 @@ class VerifyPins:
     def _refute(self, field: str, why: str):
         raise Refuted(f"pin {_pin(field, getattr(self, field))}: {why}")
 
-    def check_parameters(self, p: Parameters) -> None:
-        """The pins on the certificate's parameters (before any file is read)."""
-        if self.margin_at_least_m is not None and not p.margin_m >= self.margin_at_least_m:
-            self._refute("margin_at_least_m", f"the certificate's margin is {p.margin_m!r} m")
-        if self.depth_at_most is not None and p.max_depth > self.depth_at_most:
-            self._refute("depth_at_most", f"the certificate's maximum depth is {p.max_depth}")
-        for name, have in (("enclosure", p.enclosure), ("dtype", p.dtype)):
-            if getattr(self, name) is not None and have != getattr(self, name):
-                self._refute(name, f"the certificate's {name} is {have}")
-        if self.no_excluded_links and p.excluded_links:
-            self._refute("no_excluded_links", f"the certificate leaves out {', '.join(p.excluded_links)}")
+    def check_parameters(self, spec: RunSpec) -> None:
+        """The pins on the certificate's run spec (before any file is read)."""
+        if self.margin_at_least_m is not None and not spec.margin_m >= self.margin_at_least_m:
+            self._refute("margin_at_least_m", f"the certificate's margin is {spec.margin_m!r} m")
+        if self.depth_at_most is not None and spec.max_depth > self.depth_at_most:
+            self._refute("depth_at_most", f"the certificate's maximum depth is {spec.max_depth}")
+        for name in ("enclosure", "dtype"):
+            if getattr(self, name) is not None and getattr(spec, name) != getattr(self, name):
+                self._refute(name, f"the certificate's {name} is {getattr(spec, name)}")
+        if self.no_excluded_links and spec.ignore_links:
+            self._refute("no_excluded_links", f"the certificate leaves out {', '.join(spec.ignore_links)}")
         wants_self = self.self_collision or self.self_margin_at_least_m is not None or self.no_self_skip
-        if wants_self and p.self_margin_m is None:
+        if wants_self and not spec.self_collision:
             asked = [n for n in ("self_collision", "self_margin_at_least_m", "no_self_skip")
                      if getattr(self, n) is not None and getattr(self, n) is not False]
             self._refute(asked[0], "the certificate does not certify self-collision")
-        if self.self_margin_at_least_m is not None and not p.self_margin_m >= self.self_margin_at_least_m:
-            self._refute("self_margin_at_least_m", f"the certificate's self-collision margin is {p.self_margin_m!r} m")
-        if self.no_self_skip and p.self_skip:
-            self._refute("no_self_skip", f"the certificate skips the pairs {', '.join(p.self_skip)}")
+        if self.self_margin_at_least_m is not None and not spec.self_margin_m >= self.self_margin_at_least_m:
+            self._refute("self_margin_at_least_m",
+                         f"the certificate's self-collision margin is {spec.self_margin_m!r} m")
+        if self.no_self_skip and spec.self_skip:
+            self._refute("no_self_skip", f"the certificate skips the pairs {', '.join(spec.self_skip)}")
 
     def check_robot(self, r: RobotFacts, robot, delta) -> None:
         """The pins on the robot file (``robot``: the loaded Robot; ``delta``: the certificate's
@@ -340,11 +352,18 @@ def _m(x: float | None) -> str:
     return "none" if x is None else f"{x!r} m"  # exact: a rounded margin could hide one below a pin
 
 
+def _tolerance_text(tol) -> str:
+    if tol is None:
+        return "none (the planned curve only)"
+    if not isinstance(tol, tuple):
+        return f"{tol!r} for every active joint"
+    return ", ".join(f"{x[0]} {x[1]!r}" if isinstance(x, tuple) else f"joint {i} {x!r}" for i, x in enumerate(tol))
+
+
 def _parameter_lines(p: Parameters) -> list[str]:
-    out = [f"  parameters (from the certificate): method {p.method}, margin {_m(p.margin_m)}, maximum depth "
-           f"{p.max_depth}, enclosure {p.enclosure}, geometry dtype {p.dtype}",
-           "  tracking tolerance: " + ("none (the planned curve only)" if not p.tracking_tolerance else
-                                       ", ".join(f"{j} {x!r}" for j, x in p.tracking_tolerance))]
+    out = [f"  parameters (from the certificate's run spec): method {p.method}, margin {_m(p.margin_m)}, maximum "
+           f"depth {p.max_depth}, enclosure {p.enclosure}, geometry dtype {p.dtype}, velocities {p.velocities}",
+           "  tracking tolerance: " + _tolerance_text(p.tracking_tolerance)]
     if p.self_margin_m is None:
         out.append("  self-collision: not certified")
     else:

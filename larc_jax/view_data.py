@@ -29,7 +29,7 @@ defer_jax()
 
 import numpy as np  # noqa: E402
 
-from .certificate import CERTIFICATE_FORMAT, unhexf  # noqa: E402
+from .certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION, unhexf  # noqa: E402
 from .certificate_fields import check_certificate_fields  # noqa: E402
 from .enclosure.capsule import CapsuleModel  # noqa: E402
 from .enclosure.hull import HullModel  # noqa: E402
@@ -37,6 +37,8 @@ from .enclosure.meshes import link_collisions, links_with_geometry  # noqa: E402
 from .enclosure.robot_file import load_robot_file  # noqa: E402
 from .errors import LarcInputError  # noqa: E402
 from .results import LEAF_COLUMNS, LeafTable  # noqa: E402
+from .run_spec import RunSpec  # noqa: E402
+from .tracking import check_tracking_tolerance  # noqa: E402
 from .explain import segment_box_closest_points  # noqa: E402
 from .interval import evaluate_interval_np, trajectory_rounding  # noqa: E402
 from .leaf_reference import leaf_enclosures  # noqa: E402
@@ -123,16 +125,18 @@ def read_view_certificate(path) -> ViewData:
     doc = parse_json(read_input_text(Path(path), "certificate"), source)
     if not isinstance(doc, dict) or doc.get("format") != CERTIFICATE_FORMAT:
         raise LarcInputError(f"{source}: not a larc certificate (format {CERTIFICATE_FORMAT!r} expected)")
+    if doc.get("version") != CERTIFICATE_VERSION:
+        raise LarcInputError(f"{source}: certificate version {str(doc.get('version'))[:20]}, this viewer reads version "
+                             f"{CERTIFICATE_VERSION} (re-certify with larc certify --certificate)")
     check_certificate_fields(doc, source)
-    rdoc, params = doc["robot"], doc["parameters"]
+    rdoc, spec = doc["robot"], RunSpec.from_dict(doc["parameters"], f"{source}: parameters")
     stated = {str(j): unhexf(v) for j, v in (rdoc.get("stated_joints") or {}).items()}
     robot, capsules = load_robot_file(rdoc.get("file"), hold=stated,
                                       active_joints=rdoc.get("active_joints"))
-    more = [x for x in params.get("excluded_links", []) if x not in capsules.excluded_links]
+    more = [x for x in spec.ignore_links if x not in capsules.excluded_links]
     if more:
         capsules = capsules.without_links(robot, more, what="certificate excluded_links:")
-    tol = params.get("tracking_tolerance")
-    delta = np.array([unhexf(tol.get(j, "0x0p+0")) for j in robot.active_joint_names]) if tol else None
+    delta = check_tracking_tolerance(spec.tolerance_arg(), robot, f"{source}: parameters.tracking_tolerance")
     scenes = []
     for k, sdoc in enumerate(doc["scenes"]):
         if sdoc.get("file") is None:
@@ -142,12 +146,11 @@ def read_view_certificate(path) -> ViewData:
     for k, tdoc in enumerate(doc["trajectories"]):
         if tdoc.get("file") is None:
             raise LarcInputError(f"{source}: trajectories[{k}] was certified from arrays (no file to show)")
-        traj = read_trajectory_file(tdoc["file"], robot, velocities=tdoc.get("velocities") or "recorded").trajectory
+        traj = read_trajectory_file(tdoc["file"], robot, velocities=tdoc.get("velocities") or spec.velocities).trajectory
         items.append(ViewItem(traj, scenes[int(tdoc["scene"])], _cert_leaves(tdoc["leaves"], f"{source}: "
                                                                                      f"trajectories[{k}].leaves")))
-    sc = params.get("self_collision")
-    return ViewData(robot, capsules, tuple(items), unhexf(params["margin_m"]),
-                    None if sc is None else unhexf(sc["margin_m"]), source, str(params.get("enclosure")), delta)
+    return ViewData(robot, capsules, tuple(items), spec.margin_m, spec.self_margin_m if spec.self_collision else None,
+                    source, spec.enclosure, delta)
 
 
 def _table_leaves(df, tid: str, capsules: CapsuleModel, scene: Scene, source: str) -> LeafTable | None:

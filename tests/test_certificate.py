@@ -57,7 +57,7 @@ def test_cli_certificate_verifies(cli_cert, capsys):
     reach = doc["trajectories"][0]
     assert reach["file"] == REACH and reach["scene"] == 0 and doc["scenes"][0]["file"] == CELL
     assert doc["parameters"]["max_depth"] == int(DEPTH) and doc["parameters"]["dtype"] == "float64"
-    assert unhexf(doc["parameters"]["margin_m"]) == 0.01
+    assert doc["parameters"]["margin_m"] == 0.01 and doc["version"] == 3
     assert doc["robot"]["geometry"] and all("sha256" in e for link in doc["robot"]["geometry"].values()
                                             for e in link if "mesh" in e)
 
@@ -88,6 +88,26 @@ def test_api_certificate_verifies(tmp_path, robot, capsules):
     report = lj.verify_certificate(path, trajectories=[REACH], scenes=[CELL])
     assert report.checked == 1 and report.leaves == len(leaves) and report.min_excess_m > 0
     assert report.max_clearance_diff_m < 1e-12  # JAX kernel vs NumPy reference, float64
+    _certificate_uses_the_results_hulls(result, traj, scene, robot, capsules, doc)
+
+
+def _certificate_uses_the_results_hulls(result, traj, scene, robot, capsules, doc):
+    """hulls= (what certify was given): the robot file's parts give the same certificate; other
+    parts, which larc verify would not prove, are refused; so is a result without its run spec."""
+    import dataclasses
+
+    from larc_jax.certificate import certificate
+    from larc_jax.enclosure.hull import hull_model
+
+    own = hull_model(robot, capsules.hull_parts, capsules.padding_m)
+    assert certificate(result, [traj], scene, robot, capsules, hulls=own) == doc
+    thinner = dataclasses.replace(own, radius=np.asarray(own.radius) * 0.5)
+    with pytest.raises(LarcInputError, match=r"hull parts \(hulls=\) other than .*hull_parts"):
+        certificate(result, [traj], scene, robot, capsules, hulls=thinner)
+    with pytest.raises(LarcInputError, match=r"no run spec"):
+        certificate(dataclasses.replace(result, spec=None), [traj], scene, robot, capsules)
+    with pytest.raises(LarcInputError, match=r"the result's margin_m 0.02 is not its spec's 0.01"):
+        certificate(dataclasses.replace(result, margin_m=0.02), [traj], scene, robot, capsules)
 
 
 def _drop_leaf(k):
@@ -112,8 +132,8 @@ def _set_leaf(key, k, f):
     ("time shifted by one ulp", _set_leaf("t0", 1, lambda s: hexf(np.nextafter(unhexf(s), 0.0))), "dyadic piece"),
     ("depth edited", _set_leaf("depth", 0, lambda d: d + 1), "dyadic piece"),
     ("guard input edited", lambda doc: doc["trajectories"][0]["rounding"].update(tau_s=hexf(0.0)), "rounding input"),
-    ("margin raised", lambda doc: doc["parameters"].update(margin_m=hexf(0.0105)), "differs from the recomputed"),
-    ("margin raised a lot", lambda doc: doc["parameters"].update(margin_m=hexf(0.5)), "fails the reference test"),
+    ("margin raised", lambda doc: doc["parameters"].update(margin_m=0.0105), "differs from the recomputed"),
+    ("margin raised a lot", lambda doc: doc["parameters"].update(margin_m=0.5), "fails the reference test"),
     ("false claim", lambda doc: doc["trajectories"][1].update(certified=True), "sweep_front"),
     ("mesh hash edited", lambda doc: doc["robot"]["geometry"]["link6"][0].update(sha256="0" * 64), "collision geometry"),
     ("urdf hash edited", lambda doc: doc["robot"].update(urdf_sha256="0" * 64), "URDF"),
@@ -202,7 +222,8 @@ def test_changed_mesh_on_disk_is_refuted(tmp_path, capsys):
     ("{not json", "not valid JSON"),
     ('{"format": "something"}', "not a larc certificate"),
     ('{"format": "larc-certificate", "version": 99}', "unknown certificate version 99"),
-    ('{"format": "larc-certificate", "version": 2}', "missing field 'parameters'"),
+    ('{"format": "larc-certificate", "version": 3}', "missing field 'parameters'"),
+    ('{"format": "larc-certificate", "version": 2}', "a version-2 certificate"),
 ])
 def test_bad_input_exits_2(tmp_path, capsys, content, why):
     path = tmp_path / "c.json"
@@ -239,9 +260,9 @@ def test_reference_method_with_an_ignored_link_verifies(tmp_path, capsys):
     assert main(["certify", REACH, "--scene", CELL, "--method", "reference", "--ignore-link", "base_link",
                  "--certificate", str(path), "-q"]) == EXIT_OK
     doc = json.loads(path.read_text())
-    assert doc["parameters"]["method"] == "reference" and doc["parameters"]["excluded_links"] == ["base_link"]
+    assert doc["parameters"]["method"] == "reference" and doc["parameters"]["ignore_links"] == ["base_link"]
     assert _verify(path) == EXIT_OK
-    edited = _edited(tmp_path, doc, lambda d: d["parameters"].update(excluded_links=[]))
+    edited = _edited(tmp_path, doc, lambda d: d["parameters"].update(ignore_links=[]))
     assert _verify(edited) == EXIT_REFUTED  # the capsule list no longer matches
     assert "capsule names" in capsys.readouterr().err
 
@@ -301,13 +322,14 @@ def test_stated_gripper_tolerance_and_self_collision_are_rechecked(tmp_path, cap
     assert rc == EXIT_OK
     doc = json.loads(path.read_text())
     assert set(doc["robot"]["stated_joints"]) == {"joint7", "joint8"}
-    assert doc["parameters"]["tracking_tolerance"] and doc["parameters"]["self_collision"] is not None
+    assert doc["parameters"]["tracking_tolerance"] == 0.002 and doc["parameters"]["self_collision"] is True
     assert _verify(path) == EXIT_OK
     capsys.readouterr()
     edits = [
         lambda d: d["robot"]["stated_joints"].update(joint7=hexf(-0.038)),  # another opening
-        lambda d: d["parameters"].update(tracking_tolerance={j: hexf(0.0) for j in d["parameters"]["tracking_tolerance"]}),
-        lambda d: d["parameters"]["self_collision"].update(margin_m=hexf(0.5)),
+        lambda d: d["parameters"].update(tracking_tolerance=0.0),
+        lambda d: d["parameters"].update(self_margin_m=0.5),
+        lambda d: d["parameters"].update(hold={"joint7": 0.0}),  # joint8 no longer stated
     ]
     for edit in edits:
         rc = _verify(_edited(tmp_path, doc, edit))

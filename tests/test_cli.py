@@ -272,7 +272,32 @@ def test_explain_writes_png_of_the_blocking_interval(tmp_path, capsys):
     assert rc == 0 and "CERTIFIED" in out and "tightest" in out
 
 
+def test_explain_takes_every_run_spec_option():
+    """explain's options build the same RunSpec as certify's (its certify run and re-evaluation use it)."""
+    from larc_jax.cli import _certificate_options
+    from larc_jax.cli_parser import build_parser
+
+    opts = ["--scene", CELL, "--margin", "0.02", "--max-depth", "5", "--dtype", "float32", "--enclosure", "hull",
+            "--self-collision", "--self-margin", "0.003", "--self-skip", "link1:link4", "--tracking-tolerance",
+            "joint2=0.001", "--velocities", "finite-difference", "--ignore-link", "base_link", "--hold", "joint7=0"]
+    parser = build_parser()
+    spec = _certificate_options(parser.parse_args(["explain", OK, *opts]))
+    assert spec == _certificate_options(parser.parse_args(["certify", OK, *opts]))
+    assert (spec.dtype, spec.self_collision, spec.self_margin_m, spec.self_skip, spec.tracking_tolerance) == \
+        ("float32", True, 0.003, ("link1:link4",), (("joint2", 0.001),))
+    assert (spec.margin_m, spec.max_depth, spec.enclosure, spec.velocities, spec.ignore_links, spec.hold) == \
+        (0.02, 5, "hull", "finite-difference", ("base_link",), (("joint7", 0.0),))
+
+
 def test_explain_bad_input(tmp_path, capsys):
+    # explain takes certify's run-spec options, checked on the same path before anything is loaded
+    for args, why in ((["--self-margin", "0.01"], "--self-margin and --self-skip need --self-collision"),
+                      (["--tracking-tolerance", "abc"], "--tracking-tolerance 'abc'"),
+                      (["--tracking-tolerance", "-1"], "--tracking-tolerance -1.0: must be a finite number >= 0"),
+                      (["--self-collision", "--self-margin", "nan"], "--self-margin nan"),
+                      (["--dtype", "float16"], "argument --dtype: invalid choice")):
+        rc, _, err = larc(capsys, "explain", OK, "--scene", CELL, *args, "-o", tmp_path / "x.png")
+        assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, (args, err)
     rc, _, err = larc(capsys, "explain", OK, "--scene", CELL, "-o", tmp_path / "x.pngx")
     assert rc == 2 and "unknown image type" in err
     rc, _, err = larc(capsys, "explain", OK, "--scene", CELL, "--at", "7.5", "-o", tmp_path / "x.png")

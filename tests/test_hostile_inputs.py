@@ -187,14 +187,15 @@ def _leaves(doc):
 
 
 CERT_EDITS = {
-    "margin 0x1p+1024": (lambda d: d["parameters"].update(margin_m="0x1p+1024"), "parameters.margin_m"),
+    "margin a float.hex text": (lambda d: d["parameters"].update(margin_m="0x1p+1024"), "parameters: margin_m"),
+    "margin 1e400": (lambda d: d["parameters"].update(margin_m=1e400), "parameters: margin_m"),
     "leaf t0 0x1p+1024": (lambda d: _leaves(d)["t0"].__setitem__(0, "0x1p+1024"), "leaves.t0[0]"),
     "rounding tau 0x1p+1024": (lambda d: d["trajectories"][0]["rounding"].update(tau_s="0x1p+1024"), "tau_s"),
     "leaf index 2**63": (lambda d: _leaves(d)["index"].__setitem__(0, 2**63), "leaves.index[0]"),
     "leaf depth 2**63": (lambda d: _leaves(d)["depth"].__setitem__(0, 2**63), "leaves.depth[0]"),
     "leaf capsule -2**64": (lambda d: _leaves(d)["capsule"].__setitem__(0, -2**64), "leaves.capsule[0]"),
-    "max_depth 2**63": (lambda d: d["parameters"].update(max_depth=2**63), "parameters.max_depth"),
-    "max_depth above the limit": (lambda d: d["parameters"].update(max_depth=21), "parameters.max_depth"),
+    "max_depth 2**63": (lambda d: d["parameters"].update(max_depth=2**63), "parameters: max_depth"),
+    "max_depth above the limit": (lambda d: d["parameters"].update(max_depth=21), "parameters: max_depth"),
     "scene index 2**63": (lambda d: d["trajectories"][0].update(scene=2**63), "scene"),
     "version 2**63": (lambda d: d.update(version=2**63), "version"),
 }

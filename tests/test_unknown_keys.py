@@ -190,9 +190,8 @@ def _skeleton() -> dict:
     """A certificate with every level present (values are placeholders: the field check runs
     before any value is read)."""
     doc = {key: None for key in CERTIFICATE_FIELDS[""]}
-    doc.update(format="larc-certificate", version=2)
+    doc.update(format="larc-certificate", version=3)
     doc["parameters"] = {key: None for key in CERTIFICATE_FIELDS["parameters"]}
-    doc["parameters"]["self_collision"] = {key: None for key in CERTIFICATE_FIELDS["parameters.self_collision"]}
     doc["robot"] = {key: None for key in CERTIFICATE_FIELDS["robot"]}
     doc["scenes"] = [{key: None for key in CERTIFICATE_FIELDS["scenes[]"]}]
     traj = {key: None for key in CERTIFICATE_FIELDS["trajectories[]"]}
@@ -205,7 +204,6 @@ def _skeleton() -> dict:
 CERT_LEVELS = {
     "": (lambda d: d, ""),
     "parameters": (lambda d: d["parameters"], "parameters: "),
-    "parameters.self_collision": (lambda d: d["parameters"]["self_collision"], "parameters.self_collision: "),
     "robot": (lambda d: d["robot"], "robot: "),
     "scenes[]": (lambda d: d["scenes"][0], "scenes[0]: "),
     "trajectories[]": (lambda d: d["trajectories"][1], "trajectories[1]: "),

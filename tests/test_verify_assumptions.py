@@ -17,12 +17,13 @@ import numpy as np
 import pytest
 import yaml
 
-from larc_jax.certificate import certificate, hexf, scene_sha256, unhexf
+from larc_jax.certificate import certificate, hexf, scene_sha256
 from larc_jax.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
 from larc_jax.errors import LarcInputError
 from larc_jax.urdf import file_sha256
 from larc_jax.verify import Refuted, VerifyPins, verify_certificate
-from larc_jax.verify_report import Parameters, report_lines
+from larc_jax.run_spec import RunSpec
+from larc_jax.verify_report import report_lines
 
 ROOT = Path(__file__).resolve().parent.parent
 EX = ROOT / "configs" / "examples"
@@ -177,7 +178,7 @@ def test_report_names_every_assumption_and_where_it_came_from(made, tmp_path):
     assert report.scene_files[0].arrays_sha256 == scene_sha256(made["scenes"][0])
     p = report.parameters
     assert (p.margin_m, p.max_depth, p.enclosure, p.dtype, p.excluded_links, p.tracking_tolerance,
-            p.self_margin_m) == (unhexf(made["doc"]["parameters"]["margin_m"]), 6, "hull", "float64", (), None, None)
+            p.self_margin_m) == (made["doc"]["parameters"]["margin_m"], 6, "hull", "float64", (), None, None)
     text = "\n".join(report_lines(report))
     for what in ("margin 0.01 m", "maximum depth 6", "enclosure hull", "geometry dtype float64",
                  "tracking tolerance: none", "self-collision: not certified",
@@ -216,13 +217,14 @@ def test_pins_that_hold_verify(made, tmp_path, capsys):
     (["--margin-at-least", "0.010000000000000002"], None),  # one ulp above
     (["--enclosure", "capsules"], None),
     (["--dtype", "float32"], None),
-    (["--no-excluded-links"], lambda d: d["parameters"].update(excluded_links=["base_link"])),
+    (["--no-excluded-links"], lambda d: d["parameters"].update(ignore_links=["base_link"])),
     (["--tracking-tolerance-at-least", "joint2=0.001"], None),
     (["--self-collision"], None),
     (["--self-margin-at-least", "0"], None),
     (["--no-self-skip"], None),
     (["--robot-sha256", "0" * 64], None),
-    (["--no-stated-joints"], lambda d: d["robot"]["stated_joints"].update(joint7=hexf(0.0))),
+    (["--no-stated-joints"], lambda d: (d["robot"]["stated_joints"].update(joint7=hexf(0.0)),
+                                        d["parameters"].update(hold={"joint7": 0.0}))),
     (["--velocities", "finite-difference"], None),
     (["--require-files"], lambda d: d["trajectories"][0].update(sha256=None)),
 ])
@@ -236,8 +238,7 @@ def test_a_pin_not_met_is_refuted_naming_it(made, tmp_path, capsys, args, edit):
 
 def test_pins_on_self_collision_and_tracking_tolerance(robot):
     """The pins' comparisons where the made certificate has nothing to compare (unit level)."""
-    p = Parameters(method="larc", margin_m=0.01, max_depth=6, dtype="float64", enclosure="hull", excluded_links=(),
-                   tracking_tolerance=None, self_margin_m=0.002, self_skip=("link1:link4",))
+    p = RunSpec(margin_m=0.01, max_depth=6, self_collision=True, self_margin_m=0.002, self_skip=("link1:link4",))
     VerifyPins(self_collision=True, self_margin_at_least_m=0.002).check_parameters(p)
     with pytest.raises(Refuted, match="pin --self-margin-at-least 0.003"):
         VerifyPins(self_margin_at_least_m=0.003).check_parameters(p)

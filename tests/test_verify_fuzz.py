@@ -241,9 +241,9 @@ def _mut_leaves(rng, doc, ctx):
 
 def _mut_parameters(rng, doc, ctx):
     p, r = doc["parameters"], doc["robot"]
-    how = rng.randrange(9)
+    how = rng.randrange(10)
     if how == 0:
-        p["margin_m"] = hexf(ctx.margin_m * rng.choice((0.5, 1 - 1e-9, 1 + 1e-9, 0.999, 1.001, 2, 1e-3)))
+        p["margin_m"] = ctx.margin_m * rng.choice((0.5, 1 - 1e-9, 1 + 1e-9, 0.999, 1.001, 2, 1e-3))
     elif how == 1:
         p["max_depth"] = rng.choice((0, 1, 3, 5, 30, 62, 63, 64, 65))
     elif how == 2:
@@ -251,16 +251,21 @@ def _mut_parameters(rng, doc, ctx):
     elif how == 3:
         p["dtype"] = rng.choice(("float32", "float64", "float16"))
     elif how == 4:
-        p["excluded_links"] = p["excluded_links"] + [rng.choice(("link6", "base_link", "gripper_base", "nope"))]
+        p["ignore_links"] = p["ignore_links"] + [rng.choice(("link6", "base_link", "gripper_base", "nope"))]
     elif how == 5:
-        r["stated_joints"] = rng.choice(({}, {"joint7": hexf(0.0)}, {"joint7": hexf(-0.038), "joint8": hexf(0.0)},
-                                         {"joint1": hexf(0.0)}, {"nope": hexf(0.0)}))
+        stated = rng.choice(({}, {"joint7": 0.0}, {"joint7": -0.038, "joint8": 0.0}, {"joint1": 0.0}, {"nope": 0.0}))
+        r["stated_joints"] = {j: hexf(x) for j, x in stated.items()}
+        if rng.random() < 0.7:  # the run spec's record of them too (else the two disagree)
+            p["hold"] = stated
     elif how == 6:
-        p["tracking_tolerance"] = rng.choice((None, {"joint1": hexf(0.001)}, {"nope": hexf(0.001)}, {
-            j: hexf(rng.choice((0.0, 1e-12, 0.001, 0.002, 0.002 * (1 + 1e-9), 0.004))) for j in r["active_joints"]}))
+        p["tracking_tolerance"] = rng.choice((None, {"joint1": 0.001}, {"nope": 0.001}, 0.002, 0.0, [0.002] * 3, {
+            j: rng.choice((0.0, 1e-12, 0.001, 0.002, 0.002 * (1 + 1e-9), 0.004)) for j in r["active_joints"]}))
     elif how == 7:
-        p["self_collision"] = rng.choice((None, {"margin_m": hexf(0.0), "skip": []},
-                                          {"margin_m": hexf(0.01), "skip": ["link1:link2"]}))
+        p["self_collision"], p["self_margin_m"], p["self_skip"] = rng.choice(
+            ((False, 0.0, []), (True, 0.0, []), (True, 0.01, ["link1:link2"]), (False, 0.01, [])))
+    elif how == 8:
+        p[rng.choice(("method", "velocities", "coarse_depth"))] = rng.choice(
+            ("larc", "reference", "recorded", "finite-difference", 3, "nope", None))
     else:
         r["file"] = rng.choice((None, str(default_capsule_path()), os.path.relpath(default_capsule_path()),
                                 str(ROOT / "nope.yaml"), REACH, "/dev/null", "/"))
@@ -344,7 +349,7 @@ def mutants(ctx: Context, n: int, seed):
 
 def _context(d: Path, base: dict) -> Context:
     empty = str(d / "empty.yaml")
-    margin_m = float.fromhex(base["parameters"]["margin_m"])
+    margin_m = base["parameters"]["margin_m"]
     return Context(json.dumps(base), empty, scene_sha256(read_scene(empty)), margin_m)
 
 
@@ -392,7 +397,7 @@ def test_oracle_accepts_the_original_and_rejects_false_claims(bases, name):
         t["certified"] = True
     for col in dropped["trajectories"][0]["leaves"].values():
         del col[1]
-    margin["parameters"]["margin_m"] = hexf(5 * float.fromhex(base["parameters"]["margin_m"]))
+    margin["parameters"]["margin_m"] = 5 * base["parameters"]["margin_m"]
     for doc, why in ((dropped, "do not cover"), (margin, "fails")) + (((everything, "fails"),) if name == "cascade"
                                                                        else ()):
         false = read_claim(json.dumps(doc))

@@ -160,8 +160,8 @@ def test_recorded_robot_assumptions_are_checked(honest, tmp_path):
     """The certificate's record of held joints and left-out links must be what the files give."""
     _, cert = honest
     doc = json.loads(cert.read_text())
-    assert doc["parameters"]["excluded_links"] == ["base_link"]
-    for edit, match in ((lambda d: d["parameters"].update(excluded_links=[]), "left out"),
+    assert doc["parameters"]["ignore_links"] == ["base_link"]
+    for edit, match in ((lambda d: d["parameters"].update(ignore_links=[]), "left out"),
                         (lambda d: d["robot"]["held_joints"].update(joint7=float.hex(-0.02)), "held joint values")):
         bad = json.loads(cert.read_text())
         edit(bad)

@@ -18,26 +18,26 @@ from pathlib import Path
 import pytest
 import yaml
 
-from larc_jax.certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION, hexf
+from larc_jax.certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION
 from larc_jax.enclosure.robot_file import default_capsule_path
 from larc_jax.errors import LarcInputError
+from larc_jax.run_spec import RunSpec
 from larc_jax.verify import Refuted, verify_certificate
 from larc_jax.verify_report import report_lines
 
 
 def _bare_certificate(tmp_path: Path, **parameters) -> Path:
     doc = {"format": CERTIFICATE_FORMAT, "version": CERTIFICATE_VERSION, "trajectories": [],
-           "parameters": {"margin_m": hexf(0.01), "max_depth": 4, "dtype": "float64", "enclosure": "capsules",
-                          "excluded_links": [], **parameters}}
+           "parameters": {**RunSpec(max_depth=4, enclosure="capsules").to_dict(), **parameters}}
     path = tmp_path / "bare.json"
     path.write_text(json.dumps(doc))
     return path
 
 
 @pytest.mark.parametrize("parameters,pin,where", [
-    ({"excluded_links": [1]}, {"no_excluded_links": True}, r"parameters\.excluded_links\[0\]"),
-    ({"self_collision": {"margin_m": hexf(0.01), "skip": [{"a": 1}]}}, {"no_self_skip": True},
-     r"parameters\.self_collision\.skip\[0\]"),
+    ({"ignore_links": [1]}, {"no_excluded_links": True}, r"parameters: ignore_links\[0\] 1: expected a non-empty name"),
+    ({"self_collision": True, "self_skip": [{"a": 1}]}, {"no_self_skip": True}, r"parameters: self_skip\[0\]"),
+    ({"self_collision": "yes"}, {"self_collision": True}, r"parameters: self_collision 'yes': must be true or false"),
 ])
 def test_a_list_of_names_holding_a_non_name_is_bad_input(tmp_path, parameters, pin, where):
     with pytest.raises(LarcInputError, match=where):
@@ -92,17 +92,22 @@ def test_a_boolean_scene_index_is_bad_input(arm5, tmp_path):
 
 
 def test_a_newline_in_an_id_or_the_method_cannot_add_report_lines(arm5, tmp_path):
-    """The trajectory id and the method are the certificate's text: they verify (labels are not
-    trusted), but must not print lines of their own, such as a pin "held"."""
+    """The trajectory id is the certificate's text: it verifies (labels are not trusted), but
+    must not print lines of its own, such as a pin "held". The method is a run-spec field: any
+    text but a method is bad input, in one line."""
     doc = json.loads(arm5.read_text())
     doc["trajectories"][0]["id"] = "still'\n  pins: --robot-sha256 " + "0" * 64 + " (held)"
-    doc["parameters"]["method"] = "larc\n  pins: --no-stated-joints (held)"
     path = tmp_path / "injected.json"
     path.write_text(json.dumps(doc))
     lines = report_lines(verify_certificate(path))
     assert all("\n" not in line for line in lines)
     assert [line for line in lines if line.lstrip().startswith("pins:")] == ["  pins: none"]
     assert any("trajectory \"still'\\n  pins: --robot-sha256" in line for line in lines)
+    doc["parameters"]["method"] = "larc\n  pins: --no-stated-joints (held)"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(LarcInputError, match=r"parameters: method 'larc\\n  pins.*': one of larc") as err:
+        verify_certificate(path)
+    assert "\n" not in str(err.value)
 
 
 def test_a_trajectory_not_claimed_certified_can_be_pinned(arm5, tmp_path):
@@ -116,3 +121,14 @@ def test_a_trajectory_not_claimed_certified_can_be_pinned(arm5, tmp_path):
     with pytest.raises(Refuted, match="pin --all-certified: trajectory 'still' is not claimed certified"):
         verify_certificate(path, all_certified=True)
     assert verify_certificate(arm5, all_certified=True).checked == 1
+
+
+def test_a_certificate_states_its_whole_run_spec(tmp_path):
+    """A run-spec field left out is refused, not read as its default (the claim would then be one
+    the certificate never stated)."""
+    path = _bare_certificate(tmp_path)
+    doc = json.loads(path.read_text())
+    del doc["parameters"]["margin_m"]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(LarcInputError, match=r"parameters: missing field 'margin_m'"):
+        verify_certificate(path)

@@ -57,6 +57,30 @@ def _hex(s, where) -> float:
     return x
 
 
+def _num(v, where) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise Unreadable(f"{where}: not a finite number")
+    return float(v)
+
+
+def _tolerance(v, active) -> dict | None:
+    """The run spec's tracking tolerance as joint -> value (None: none): one number for every
+    active joint, one per active joint, or a mapping."""
+    if v is None:
+        return None
+    if isinstance(v, dict):
+        out = {str(j): _num(x, f"tolerance {j}") for j, x in v.items()}
+    elif isinstance(v, list):
+        if len(v) != len(active):
+            raise Unreadable("tolerance length")
+        out = {j: _num(x, "tolerance") for j, x in zip(active, v)}
+    else:
+        out = {j: _num(v, "tolerance") for j in active}
+    if out and min(out.values()) < 0:
+        raise Unreadable("negative tolerance")
+    return out
+
+
 def _field(doc, key, kind, where):
     if not isinstance(doc, dict) or key not in doc:
         raise Unreadable(f"{where}.{key} missing")
@@ -114,24 +138,23 @@ def read_claim(text: str) -> Claim:
         doc = json.loads(text.removeprefix("\ufeff"), object_pairs_hook=_no_duplicates)
     except (ValueError, RecursionError) as exc:
         raise Unreadable(f"not JSON: {exc}") from None
-    if not isinstance(doc, dict) or doc.get("format") != "larc-certificate" or doc.get("version") != 2:
+    if not isinstance(doc, dict) or doc.get("format") != "larc-certificate" or doc.get("version") != 3:
         raise Unreadable("format/version")
     p, r = _field(doc, "parameters", dict, ""), _field(doc, "robot", dict, "")
-    margin = _hex(_field(p, "margin_m", str, "p"), "margin_m")
+    margin = _num(_field(p, "margin_m", (int, float), "p"), "margin_m")
     depth = _field(p, "max_depth", int, "p")
     if margin <= 0 or not 0 <= depth <= 64 or _field(p, "dtype", str, "p") not in ("float64", "float32"):
         raise Unreadable("margin, depth or dtype")
     enclosure = _field(p, "enclosure", str, "p")
     if enclosure not in ("hull", "capsules"):
         raise Unreadable("enclosure")
-    # An absent optional assumption reads as null (none): the weaker claim, which the oracle checks as such.
-    tol = _field({"tracking_tolerance": None, **p}, "tracking_tolerance", (dict, type(None)), "p")
-    tol = None if tol is None else {str(j): _hex(v, f"tolerance {j}") for j, v in tol.items()}
-    if tol and min(tol.values()) < 0:
-        raise Unreadable("negative tolerance")
-    sc = _field({"self_collision": None, **p}, "self_collision", (dict, type(None)), "p")
-    sc = None if sc is None else (_hex(_field(sc, "margin_m", str, "sc"), "self margin"),
-                                  frozenset(_strs(_field(sc, "skip", list, "sc"), "skip")))
+    if _field(p, "velocities", str, "p") not in ("recorded", "finite-difference"):
+        raise Unreadable("parameters.velocities")
+    active = tuple(_strs(_field(r, "active_joints", list, "robot"), "active"))
+    tol = _tolerance(_field(p, "tracking_tolerance", (int, float, list, dict, type(None)), "p"), active)
+    sc = (_num(_field(p, "self_margin_m", (int, float), "p"), "self margin"),
+          frozenset(_strs(_field(p, "self_skip", list, "p"), "skip")))
+    sc = sc if _field(p, "self_collision", bool, "p") else None
     robot_file = _field(r, "file", (str, type(None)), "robot")
     stated = {j: _hex(v, f"stated {j}") for j, v in _field(r, "stated_joints", dict, "robot").items()}
     robot = (_path(robot_file) if robot_file is not None else None, _field(r, "sha256", str, "robot"),
@@ -154,12 +177,13 @@ def read_claim(text: str) -> Claim:
         if not 0 <= k < len(scenes):
             raise Unreadable("scene index")
         velocities = t.get("velocities")
-        if velocities not in (None, "recorded", "finite-difference"):
+        velocities = p["velocities"] if velocities is None else velocities
+        if velocities not in ("recorded", "finite-difference"):
             raise Unreadable(f"velocities {velocities!r}")
         trajs.append(TrajClaim(_path(_field(t, "file", str, "traj")), _field(t, "sha256", (str, type(None)), "traj"),
-                               _field(t, "arrays_sha256", str, "traj"), velocities or "recorded", scenes[k],
+                               _field(t, "arrays_sha256", str, "traj"), velocities, scenes[k],
                                tuple((_hex(a, "t0"), _hex(b, "t1")) for a, b in zip(t0, t1))))
-    return Claim(robot, stated, frozenset(_strs(_field(p, "excluded_links", list, "p"), "excluded")), margin,
+    return Claim(robot, stated, frozenset(_strs(_field(p, "ignore_links", list, "p"), "excluded")), margin,
                  enclosure, tol, sc, tuple(trajs))
 
 
