@@ -144,7 +144,8 @@ _SPEC_OPTIONS = {"margin_m": "--margin", "max_depth": "--max-depth", "tracking_t
 def _certificate_options(args):
     """The run's :class:`~larc_jax.run_spec.RunSpec` from the certify / explain options: validated
     once, before any file is read or JAX is loaded; a bad value names its option."""
-    from .run_spec import RunSpec, parse_tracking_tolerance
+    from .option_values import parse_tracking_tolerance
+    from .run_spec import RunSpec
 
     self_collision = bool(getattr(args, "self_collision", False))
     self_margin, self_skip = getattr(args, "self_margin", None), tuple(getattr(args, "self_skip", None) or ())

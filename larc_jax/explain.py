@@ -41,7 +41,7 @@ from .tracking import check_tracking_tolerance
 from .trajectory import Trajectory
 
 __all__ = ["Explanation", "choose_leaf", "describe_leaf", "explain", "render", "segment_box_closest_points",
-           "segment_closest_points", "polytope_box_closest_points", "tool_capsules"]
+           "segment_closest_points", "segment_segment_closest_points", "polytope_box_closest_points", "tool_capsules"]
 
 
 def choose_leaf(result: TrajectoryResult, which: str = "first", at: float | None = None) -> Leaf:
@@ -104,9 +104,11 @@ def segment_box_closest_points(p0, p1, lo, hi, iters: int = 200):
     return segment_closest_points(p0, p1, lambda x: np.clip(x, lo, hi), iters)
 
 
-def _segment_projection(q0, q1):
+def segment_segment_closest_points(p0, p1, q0, q1, iters: int = 200):
+    """Closest points between segments [p0, p1] and [q0, q1] (for drawing only)."""
     d = q1 - q0
-    return lambda x: q0 + float(np.clip(np.dot(x - q0, d) / max(float(np.dot(d, d)), 1e-300), 0.0, 1.0)) * d
+    return segment_closest_points(
+        p0, p1, lambda x: q0 + float(np.clip(np.dot(x - q0, d) / max(float(np.dot(d, d)), 1e-300), 0.0, 1.0)) * d, iters)
 
 
 def polytope_box_closest_points(vertices, lo, hi):
@@ -160,7 +162,7 @@ def _deciding_pair(pairs: SelfPairs, ev, first: int, second: int) -> DecidingPai
     p = int(np.flatnonzero((pairs.first == first) & (pairs.second == second))[0])
     b = motion_radii(pairs.motion_a[p: p + 1], ev.h_cov, np.asarray(ev.speed, np.float64))[0]
     pa, pb = ev.p_world_a, ev.p_world_b
-    closest = segment_closest_points(pa[first], pb[first], _segment_projection(pa[second], pb[second]))
+    closest = segment_segment_closest_points(pa[first], pb[first], pa[second], pb[second])
     return DecidingPair(motion_b_m=float(b), margin_m=float(pairs.margin_m), closest=closest,
                         distance_m=segment_segment_distance_np(pa[first], pb[first], pa[second], pb[second]))
 

@@ -16,7 +16,7 @@ from typing import Iterable, Iterator
 
 from .errors import LarcInputError
 
-__all__ = ["parse_hold", "parse_joints", "parse_package_dirs", "parse_capsules_per_link"]
+__all__ = ["parse_hold", "parse_joints", "parse_package_dirs", "parse_capsules_per_link", "parse_tracking_tolerance"]
 
 
 def _named_items(items: Iterable[str] | str | None, option: str, form: str) -> Iterator[tuple[str, str, str]]:
@@ -74,4 +74,23 @@ def parse_capsules_per_link(items: Iterable[str] | str | None, option: str = "--
         if not re.fullmatch(r"[12]", count):
             raise LarcInputError(f"{option} '{item}': expected LINK=1 or LINK=2")
         out[link] = int(count)
+    return out
+
+
+def parse_tracking_tolerance(text: str, option: str = "--tracking-tolerance") -> float | dict[str, float]:
+    """``RAD`` (every joint) as a float, or ``JOINT=VALUE,JOINT=VALUE,...`` as a dict (a joint
+    given twice is refused); :attr:`~larc_jax.run_spec.RunSpec.tracking_tolerance` and
+    :func:`~larc_jax.tracking.check_tracking_tolerance` check the values."""
+    text = text.strip()
+    if "=" not in text:
+        try:
+            return float(text)
+        except ValueError:
+            raise LarcInputError(f"{option} '{text}': expected a number or JOINT=VALUE,...") from None
+    out = {}
+    for name, value, item in _named_items([part.strip() for part in text.split(",")], option, "JOINT=VALUE"):
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise LarcInputError(f"{option} '{item}': expected JOINT=VALUE (a number)") from None
     return out

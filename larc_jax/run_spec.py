@@ -27,7 +27,7 @@ from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M
 from .errors import LarcInputError
 from .io import short_repr as short
 
-__all__ = ["RunSpec", "DTYPES", "parse_tracking_tolerance"]
+__all__ = ["RunSpec", "DTYPES"]
 
 DTYPES = ("float64", "float32")
 """Geometry dtypes (:mod:`larc_jax.interval`); times and the curve stay float64."""
@@ -87,28 +87,6 @@ def _tolerance(value, what: str = "tracking_tolerance"):
             raise LarcInputError(f"{what}: an empty list (give one number per active joint, or null)")
         return tuple(_nonneg(x, f"{what}[{i}]", unit) for i, x in enumerate(value))
     return _nonneg(value, what, unit)
-
-
-def parse_tracking_tolerance(text: str, what: str = "--tracking-tolerance"):
-    """The command-line form: ``RAD`` (every joint) or ``JOINT=VALUE,JOINT=VALUE,...``; returns a
-    float or a dict (:attr:`RunSpec.tracking_tolerance`, :func:`~larc_jax.tracking.check_tracking_tolerance`)."""
-    text = text.strip()
-    if "=" not in text:
-        try:
-            return float(text)
-        except ValueError:
-            raise LarcInputError(f"{what} '{text}': expected a number or JOINT=VALUE,...") from None
-    out = {}
-    for item in text.split(","):
-        name, sep, x = item.partition("=")
-        name = name.strip()
-        try:
-            out[name] = float(x)
-        except ValueError:
-            raise LarcInputError(f"{what} '{item}': expected JOINT=VALUE (a number)") from None
-        if not sep or not name:
-            raise LarcInputError(f"{what} '{item}': expected JOINT=VALUE")
-    return out
 
 
 def _hold(value) -> tuple[tuple[str, float], ...]:

@@ -42,7 +42,7 @@ import numpy as np
 from .enclosure.capsule import CapsuleModel
 from .errors import LarcInputError
 from .robot import JointType, Robot
-from .run_spec import parse_tracking_tolerance  # the command-line form (no JAX: the CLI checks it first)
+from .option_values import parse_tracking_tolerance  # the command-line form (no JAX: the CLI checks it first)
 
 __all__ = ["check_tracking_tolerance", "parse_tracking_tolerance", "tracked_capsules", "tracking_radius", "joint_units"]
 

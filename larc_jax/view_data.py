@@ -39,7 +39,7 @@ from .errors import LarcInputError  # noqa: E402
 from .results import LEAF_COLUMNS, LeafTable  # noqa: E402
 from .run_spec import RunSpec  # noqa: E402
 from .tracking import check_tracking_tolerance  # noqa: E402
-from .explain import segment_box_closest_points  # noqa: E402
+from .explain import segment_box_closest_points, segment_segment_closest_points  # noqa: E402
 from .interval import evaluate_interval_np, trajectory_rounding  # noqa: E402
 from .leaf_reference import leaf_enclosures  # noqa: E402
 from .io import parse_json, read_input_text  # noqa: E402
@@ -276,26 +276,6 @@ def timeline_image(leaves: LeafTable, t_start: float, t_end: float, width: int =
     return img
 
 
-def _closest_segment_segment(p0, p1, q0, q1, iters: int = 100):
-    """Closest points of two segments: ternary search on the convex s -> dist(p(s), segment q)."""
-    d = q1 - q0
-
-    def on_q(x):
-        u = float(np.clip(np.dot(x - q0, d) / max(float(np.dot(d, d)), 1e-300), 0.0, 1.0))
-        return q0 + u * d
-
-    def dist(s):
-        x = p0 + s * (p1 - p0)
-        return float(np.linalg.norm(x - on_q(x)))
-
-    a, b = 0.0, 1.0
-    for _ in range(iters):
-        m1, m2 = a + (b - a) / 3, b - (b - a) / 3
-        a, b = (a, m2) if dist(m1) <= dist(m2) else (m1, b)
-    x = p0 + 0.5 * (a + b) * (p1 - p0)
-    return x, on_q(x)
-
-
 @dataclasses.dataclass(frozen=True)
 class LeafDetail:
     """The capsules of one leaf at its midpoint, their shells, and the recorded pair."""
@@ -328,7 +308,7 @@ def leaf_detail(data: ViewData, item: ViewItem, j: int) -> LeafDetail:
     c, k, o = int(lv.capsule[j]), int(lv.box[j]), int(lv.other_capsule[j])
     closest = None
     if c >= 0 and o >= 0:
-        closest = _closest_segment_segment(pa[c], pb[c], pa[o], pb[o])
+        closest = segment_segment_closest_points(pa[c], pb[c], pa[o], pb[o])
     elif c >= 0 and 0 <= k < scene.n_boxes:
         closest = segment_box_closest_points(pa[c], pb[c], scene.lo[k], scene.hi[k])
     margin = data.self_margin_m if o >= 0 and data.self_margin_m is not None else data.margin_m

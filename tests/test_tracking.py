@@ -40,7 +40,7 @@ def test_validation(robot):
             check_tracking_tolerance(bad, robot)
     assert parse_tracking_tolerance("0.02") == 0.02
     assert parse_tracking_tolerance("joint1=0.01, joint3=0.5") == {"joint1": 0.01, "joint3": 0.5}
-    for bad in ("abc", "joint1=x", "=0.1", "joint1=0.1,joint2"):
+    for bad in ("abc", "joint1=x", "=0.1", "joint1=0.1,joint2", "joint1=0.1, joint1=0.2"):
         with pytest.raises(LarcInputError, match="--tracking-tolerance"):
             parse_tracking_tolerance(bad)
 
