@@ -50,7 +50,7 @@ def audit_times(t: np.ndarray, hz: float) -> np.ndarray:
 
 
 def audit_trajectory(traj, boxes, collision_model, hz: float = 250.0, allowed_pairs=()) -> dict:
-    """Audit one trajectory (a :class:`larc_jax.trajectory.Trajectory` in the robot's joint
+    """Audit one trajectory (a :class:`larc_jax.model.trajectory.Trajectory` in the robot's joint
     order) against ``boxes`` (anything :func:`experiments.collision.scene_boxes` accepts).
 
     Returns the audit columns of :data:`~experiments.common.AUDIT_FIELDS` (without ``traj_id``,
@@ -119,7 +119,7 @@ def audit_file_in_worker(path: str, scene_file: str) -> dict:
     """Audit one trajectory file in a process set up by :func:`init_worker` (scene boxes are
     cached per scene file)."""
     from experiments.collision import SceneBoxes
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.trajectory_files import read_trajectory
 
     model = _W["model"]
     boxes = _W["boxes"].get(scene_file)
@@ -169,7 +169,7 @@ def audit_inputs(config: dict) -> list[Path]:
     """The files every audit row depends on besides its trajectory and scene: the allowed pairs,
     the URDF and its collision meshes."""
     from experiments.collision import geometry_files
-    from larc_jax.urdf import load_robot
+    from larc_jax.model.urdf import load_robot
 
     return [resolve(config["allowed_collisions"]), *geometry_files(load_robot())]
 

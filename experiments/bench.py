@@ -125,9 +125,9 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
     """XLA cost analysis of the interval kernel on one full bucket of Stage B intervals."""
     import jax
 
-    from larc_jax.batch import BUCKETS, prepare
-    from larc_jax.certify import _check_inputs  # noqa: PLC2701 - the benchmark measures internals
-    from larc_jax.interval import trajectory_rounding
+    from larc_jax.engine.batch import BUCKETS, prepare
+    from larc_jax.engine.certify import _check_inputs  # noqa: PLC2701 - the benchmark measures internals
+    from larc_jax.leaf.interval import trajectory_rounding
 
     trajs, scenes, *_ = _check_inputs(trajs, scenes, robot, capsules, 0.01, 9, 4, np.float64, None)
     bounds = [trajectory_rounding(t, robot, capsules) for t in trajs]
@@ -138,7 +138,7 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
     depth, index = np.full(F, 6), rng.integers(0, 64, F)
     out = {"bucket_intervals": F, "peak_gflops_nominal": peak_gflops,
            "boxes_padded_to": int(batch.box_lo.shape[1]), "device": str(jax.devices()[0])}
-    # The kernel certify runs (broad phase, larc_jax.clearance) and the all-pairs one it falls
+    # The kernel certify runs (broad phase, larc_jax.leaf.clearance) and the all-pairs one it falls
     # back to for intervals the broad phase cannot prove.
     for name, broad in (("broad_phase", True), ("all_pairs", False)):
         cost = batch.cost_analysis(traj, depth, index, broad_phase=broad)

@@ -41,9 +41,9 @@ def _datasets(n_synthetic: int):
     import dataclasses
 
     from experiments.bench import stageB_dataset
-    from larc_jax.scene import read_scene
-    from larc_jax.trajectory_files import read_trajectory
-    from larc_jax.urdf import load_robot
+    from larc_jax.model.scene import read_scene
+    from larc_jax.model.trajectory_files import read_trajectory
+    from larc_jax.model.urdf import load_robot
 
     robot = load_robot()
     out = {}

@@ -14,7 +14,7 @@ new process, each time timing the whole process (wall clock, from ``subprocess``
 The phases come from ``larc -v``'s ``time:`` line (loading the robot: URDF parse, capsule file
 and motion constants; reading the trajectory; certifying, split into compiling — tracing,
 lowering, XLA compilation or cache load — and running); ``import`` is the wall time of a fresh
-``python -c "import larc_jax.cli, larc_jax.certify"`` (interpreter start and imports; the
+``python -c "import larc_jax.drivers.cli, larc_jax.engine.certify"`` (interpreter start and imports; the
 remainder of a run's wall time is the interpreter exit and argument parsing). Medians are
 reported; the machine's load average is recorded because the figures depend on it.
 """
@@ -41,7 +41,7 @@ __all__ = ["run_once", "main"]
 
 
 def _larc() -> list[str]:
-    return [sys.executable, "-m", "larc_jax.cli"]
+    return [sys.executable, "-m", "larc_jax.drivers.cli"]
 
 
 def run_once(cache_home: str | None, *extra: str) -> dict:
@@ -65,7 +65,7 @@ def run_once(cache_home: str | None, *extra: str) -> dict:
 
 def import_time() -> float:
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import larc_jax.cli, larc_jax.certify"], check=True, cwd=ROOT)
+    subprocess.run([sys.executable, "-c", "import larc_jax.drivers.cli, larc_jax.engine.certify"], check=True, cwd=ROOT)
     return time.perf_counter() - t0
 
 
@@ -106,7 +106,7 @@ def main(argv=None) -> int:
         r = out[name]
         print(f"{name:>10}: {r['wall_s']:.2f} s wall (robot {r['robot_s']:.2f} s, certify {r['certify_s']:.2f} s: "
               f"compile {r['compile_s']:.2f} s, run {r['run_s']:.2f} s)")
-    print(f"    import: {out['import_s']:.2f} s (fresh python, import larc_jax.cli + certify)")
+    print(f"    import: {out['import_s']:.2f} s (fresh python, import larc_jax.drivers.cli + certify)")
     print(f"warm cache: dominated by {out['warm_cache_dominant_phase']}; load average "
           f"{out['machine']['load_average_before']} -> {out['machine']['load_average_after']}")
     if args.json:

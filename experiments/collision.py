@@ -6,7 +6,7 @@ URDF (not the capsule enclosures that LARC certifies with), as MoveIt's FCL plug
 * Every ``<collision>`` element of every link becomes one ``fcl.CollisionObject`` (a BVH of the
   mesh triangles in the link frame, or an FCL primitive for box/cylinder/sphere), with the
   collision origin applied. The objects are built once per process (~0.5 s) and re-placed with
-  ``setTransform`` from :func:`larc_jax.robot.forward_kinematics_np` for each state.
+  ``setTransform`` from :func:`larc_jax.model.robot.forward_kinematics_np` for each state.
 * Scene boxes are solid ``fcl.Box`` objects at their centres; meshes are surfaces. A mesh that
   touches or lies inside a box collides; a box entirely inside a (hollow) mesh does not — the
   same semantics as MoveIt/FCL.
@@ -14,7 +14,7 @@ URDF (not the capsule enclosures that LARC certifies with), as MoveIt's FCL plug
   (see :mod:`experiments.self_collision`).
 
 Geometry comes from the library, so the audit and the capsule fit see the same shapes: scenes
-are read by :func:`larc_jax.scene.read_scene` (YAML or MoveIt ``.scene``, base frame, metres) and
+are read by :func:`larc_jax.model.scene.read_scene` (YAML or MoveIt ``.scene``, base frame, metres) and
 meshes by :func:`larc_jax.enclosure.meshes.link_collisions` (COLLADA units and URDF scale applied).
 """
 
@@ -63,14 +63,14 @@ class SceneBoxes:
 
     @classmethod
     def from_scene(cls, scene) -> "SceneBoxes":
-        """The boxes of a :class:`larc_jax.scene.Scene`."""
+        """The boxes of a :class:`larc_jax.model.scene.Scene`."""
         return cls(scene.lo, scene.hi, scene.box_names or None)
 
     @classmethod
     def from_file(cls, path: str | Path, frame: str = "base_link") -> "SceneBoxes":
-        """The boxes of a scene file (:func:`larc_jax.scene.read_scene`: YAML or MoveIt
+        """The boxes of a scene file (:func:`larc_jax.model.scene.read_scene`: YAML or MoveIt
         ``.scene``; its frame must be ``frame``, the robot's root link)."""
-        from larc_jax.scene import read_scene
+        from larc_jax.model.scene import read_scene
 
         return cls.from_scene(read_scene(path, frame=frame))
 
@@ -113,7 +113,7 @@ def geometry_files(robot) -> list[Path]:
     """The URDF and every mesh file of the robot's collision geometry: the data an FCL model of
     ``robot`` is built from (for fingerprints)."""
     from larc_jax.enclosure.meshes import robot_urdf_model
-    from larc_jax.urdf import resolve_uri
+    from larc_jax.model.urdf import resolve_uri
 
     model = robot_urdf_model(robot)
     urdf = Path(robot.urdf_path)
@@ -159,7 +159,7 @@ class CollisionModel:
         import trimesh
 
         from larc_jax.enclosure.meshes import link_collisions
-        from larc_jax.urdf import load_robot
+        from larc_jax.model.urdf import load_robot
 
         self._fcl = fcl
         self.robot = robot if robot is not None else load_robot()
@@ -193,7 +193,7 @@ class CollisionModel:
         """Place every collision object at configuration ``q`` (n,); returns the link poses."""
         fcl = self._fcl
         q = np.asarray(q, dtype=np.float64)
-        from larc_jax.robot import forward_kinematics_np
+        from larc_jax.model.robot import forward_kinematics_np
 
         T_link = forward_kinematics_np(self.robot, q)
         T = T_link[self.object_link] @ self.object_origin
@@ -341,7 +341,7 @@ class CollisionModel:
         """Link name → trimesh of its collision mesh(es) in the base frame at ``q`` (drawing)."""
         import trimesh
 
-        from larc_jax.robot import forward_kinematics_np
+        from larc_jax.model.robot import forward_kinematics_np
 
         T = forward_kinematics_np(self.robot, np.asarray(q, dtype=np.float64))
         out = {}

@@ -244,10 +244,10 @@ VIEWS = (("top", (0, 1), "x (m)", "y (m)"), ("side", (0, 2), "x (m)", "z (m)"), 
 
 def _replay_data(path, scene_path, robot, caps, link: str):
     from larc_jax.enclosure.capsule import capsule_segments_np
-    from larc_jax.hermite import evaluate_np
-    from larc_jax.robot import forward_kinematics_np
-    from larc_jax.scene import read_scene
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.hermite import evaluate_np
+    from larc_jax.model.robot import forward_kinematics_np
+    from larc_jax.model.scene import read_scene
+    from larc_jax.model.trajectory_files import read_trajectory
 
     tr = read_trajectory(path, robot)
     sc = read_scene(scene_path, frame=robot.link_names[0])
@@ -351,7 +351,7 @@ def workspace_points(robot, n: int, seed: int, link: str) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
-    from larc_jax.robot import forward_kinematics
+    from larc_jax.model.robot import forward_kinematics
 
     rng = np.random.default_rng(int(seed))
     Q = rng.uniform(np.asarray(robot.q_lower, float), np.asarray(robot.q_upper, float), (int(n), robot.n_joints))

@@ -78,7 +78,7 @@ def draw(out: str | Path = DEFAULT_OUT, capsule_path: str | Path | None = None, 
     from experiments.collision import CollisionModel
     from larc_jax.enclosure.robot_file import default_capsule_path, load_capsules
     from larc_jax.io import atomic_write_bytes
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.robot import forward_kinematics_np
 
     model = CollisionModel()
     robot = model.robot

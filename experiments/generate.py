@@ -103,7 +103,7 @@ __all__ = [
 
 def moveit_limits(robot, path: str | Path | None = None) -> dict:
     """MoveIt joint limits for the robot's active joints: lo, hi, vmax, amax (n,) and scalings."""
-    from larc_jax.urdf import piper_description_dir
+    from larc_jax.model.urdf import piper_description_dir
 
     path = Path(path) if path is not None else piper_description_dir() / "config" / "moveit_joint_limits.yaml"
     doc = yaml.safe_load(path.read_text())
@@ -180,7 +180,7 @@ class SceneContext:
         return self.model.state_valid(q, self.boxes, self.allowed)
 
     def point(self, q) -> np.ndarray:
-        from larc_jax.robot import forward_kinematics_np
+        from larc_jax.model.robot import forward_kinematics_np
 
         return forward_kinematics_np(self.robot, q)[self.point_link][:3, 3]
 
@@ -211,7 +211,7 @@ def attempt_endpoints(ctx: SceneContext, seed: int, attempt: int):
 
 def run_attempt(ctx: SceneContext, seed: int, attempt: int):
     """One generation attempt → (CSV row, (planned, start, goal) or None)."""
-    from larc_jax.trajectory import Trajectory
+    from larc_jax.model.trajectory import Trajectory
 
     start, goal, ompl_seed = attempt_endpoints(ctx, seed, attempt)
     row = {k: "" for k in CSV_FIELDS}
@@ -268,7 +268,7 @@ def _contact_detail(ctx: SceneContext, q) -> str:
 @functools.lru_cache(maxsize=1)
 def _robot_geometry() -> tuple[Path, ...]:
     from experiments.collision import geometry_files
-    from larc_jax.urdf import load_robot
+    from larc_jax.model.urdf import load_robot
 
     return tuple(geometry_files(load_robot()))
 
@@ -326,7 +326,7 @@ def generate_scene(
     """Generate one scene's pairs (see module docstring). Returns the scene summary (also
     written as the done-marker). Skips the work if a matching done-marker exists."""
     from larc_jax.io import atomic_write_json, atomic_write_text
-    from larc_jax.trajectory_files import write_trajectory
+    from larc_jax.model.trajectory_files import write_trajectory
 
     if not isinstance(config, dict):
         config = load_config(config)

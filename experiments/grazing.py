@@ -53,7 +53,7 @@ _HELD = ((0.3, 2.0), (-2.5, -0.6), (-1.5, 1.5), (-1.1, 1.1), (-3.0, 3.0))
 
 
 def _trajectory(q_other, theta_w, omega, t_w, name):
-    from larc_jax.trajectory import Trajectory
+    from larc_jax.model.trajectory import Trajectory
 
     t = np.array([0.0, DURATION_S])
     q = np.zeros((2, 6))

@@ -13,7 +13,7 @@ __all__ = ["robot_and_capsules", "load_dataset"]
 def robot_and_capsules(config: dict):
     """PIPER (``LARC_PIPER_DESCRIPTION``) and the protocol's capsule file (``capsules``)."""
     from larc_jax.enclosure.robot_file import load_capsules
-    from larc_jax.urdf import load_robot
+    from larc_jax.model.urdf import load_robot
 
     robot = load_robot()
     return robot, load_capsules(resolve(config["capsules"]), robot)
@@ -22,8 +22,8 @@ def robot_and_capsules(config: dict):
 def load_dataset(layout: Layout, config: dict, robot):
     """``(index, trajectories, scenes)``: :func:`~experiments.common.dataset_index`, each file
     read for ``robot``, and each trajectory's scene (named after the protocol's scene)."""
-    from larc_jax.scene import read_scene
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.scene import read_scene
+    from larc_jax.model.trajectory_files import read_trajectory
 
     index = dataset_index(layout, config)
     scenes = {s: dataclasses.replace(read_scene(p, frame=robot.link_names[0]), name=s)

@@ -174,7 +174,7 @@ def hermite_states(t: np.ndarray, q: np.ndarray, qd: np.ndarray, hz: float,
 
 def smoothstep_trajectory(q0, q1, T: float, n_waypoints: int, joint_names, traj_id: str = ""):
     """The direct control: q(t) = q0 + (q1 - q0) (3u^2 - 2u^3), u = t / T, exact velocities."""
-    from larc_jax.trajectory import Trajectory
+    from larc_jax.model.trajectory import Trajectory
 
     q0 = np.asarray(q0, dtype=np.float64)
     q1 = np.asarray(q1, dtype=np.float64)

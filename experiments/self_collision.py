@@ -54,7 +54,7 @@ def _pair(a: str, b: str) -> tuple[str, str]:
 def adjacent_pairs(robot, links_with_geometry=None) -> set[tuple[str, str]]:
     """MoveIt-style adjacency: joint-connected links, through fixed joints and geometry-less
     links. Returns sorted name pairs."""
-    from larc_jax.robot import JointType
+    from larc_jax.model.robot import JointType
 
     names = list(robot.link_names)
     geo = set(names if links_with_geometry is None else links_with_geometry)

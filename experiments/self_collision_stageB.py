@@ -27,8 +27,8 @@ def main(argv=None) -> int:
     from larc_jax import certify, read_scene
     from larc_jax.enclosure.robot_file import load_robot_file
     from larc_jax.io import atomic_write_text
-    from larc_jax.scene import Scene
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.scene import Scene
+    from larc_jax.model.trajectory_files import read_trajectory
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--self-margin", type=float, default=0.0)

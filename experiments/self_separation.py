@@ -1,7 +1,7 @@
 """Prove that a link pair can never touch, over the whole joint range: branch and bound in the joint
 space of the joints between the two links, with FCL mesh distances and the motion constants.
 
-Why. The self-collision certificate (:mod:`larc_jax.self_collision`) checks capsule pairs. A few
+Why. The self-collision certificate (:mod:`larc_jax.leaf.self_collision`) checks capsule pairs. A few
 PIPER pairs that are *not* joined by a joint have capsules that overlap at every configuration
 (base_link / link2, link3 / link5: the capsules are fat near the joints), although the meshes
 never touch. Sampling 10^4 configurations (the allowed list, ``experiments.self_collision``) does
@@ -42,7 +42,7 @@ from larc_jax.data import PIPER_SELF_SEPARATION, data_path
 WIDEN_RAD = 0.05
 """The proof covers the joint limits widened by this much (revolute joints): a Hermite curve may
 overshoot a limit between waypoints; the certificate skips a proven pair only for trajectories
-whose curve stays inside the proven ranges (:func:`larc_jax.self_collision.curve_ranges`)."""
+whose curve stays inside the proven ranges (:func:`larc_jax.leaf.self_collision.curve_ranges`)."""
 TARGET_CLEARANCE_M = 0.001
 """Cells are refined until each proves this clearance (a proof serves self margins below it)."""
 FCL_TOLERANCE_M = 1e-6
@@ -56,8 +56,8 @@ def prove_pair(model, capsules, link_a: str, link_b: str, target_m: float = TARG
     """Branch and bound (module docstring) for ``link_a`` and its descendant ``link_b``: every cell
     is refined until it proves a clearance above ``target_m``. Returns a record: ``proven``,
     ``clearance_m`` (>= target_m), ``cells``, ``joints`` and, if not proven, ``why``."""
-    from larc_jax.robot import JointType
-    from larc_jax.self_collision import path_joints
+    from larc_jax.model.robot import JointType
+    from larc_jax.leaf.self_collision import path_joints
 
     import fcl
 
@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     from experiments.collision import CollisionModel
     from larc_jax.enclosure.robot_file import load_robot_file
     from larc_jax.io import atomic_write_text
-    from larc_jax.self_collision import link_geometry_sha256
+    from larc_jax.leaf.self_collision import link_geometry_sha256
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default=str(data_path(PIPER_SELF_SEPARATION)))

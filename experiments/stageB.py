@@ -125,7 +125,7 @@ def stage_plan(layout: Layout, config: dict, config_path: Path, quick: bool, wor
         return tuple(audit.audit_inputs(config))
 
     def fp_cert() -> str:  # certification reads the URDF (kinematics) and the capsules, not the meshes
-        from larc_jax.urdf import piper_urdf_path
+        from larc_jax.model.urdf import piper_urdf_path
 
         return fingerprint([*dataset(), piper_urdf_path(), capsules], params, code=timing.CODE)
 

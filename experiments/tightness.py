@@ -178,7 +178,7 @@ class _Truth:
         from experiments.collision import CollisionModel
         from larc_jax.enclosure import default_capsule_path, load_capsules
         from larc_jax.enclosure.hull import build_parts
-        from larc_jax.urdf import load_robot
+        from larc_jax.model.urdf import load_robot
 
         self.fcl = fcl
         self.robot = load_robot(held_joint_values=HOLD, stated_joints=list(HOLD))  # fingers closed
@@ -205,7 +205,7 @@ class _Truth:
         import jax
 
         from larc_jax.enclosure import capsule_segments
-        from larc_jax.geometry import segment_box_distances
+        from larc_jax.obstacles.geometry import segment_box_distances
 
         out = []
         with jax.enable_x64(True):
@@ -222,7 +222,7 @@ class _Truth:
 
     def vertex_upper_bound(self, Q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
         """Smallest distance of any hull vertex (a mesh point) to any box over the states ``Q``."""
-        from larc_jax.robot import forward_kinematics_np
+        from larc_jax.model.robot import forward_kinematics_np
 
         best = math.inf
         for q in Q:
@@ -309,7 +309,7 @@ _WORKER: dict = {}
 
 def _truth_job(job: dict) -> dict:
     from experiments.collision import SceneBoxes
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.trajectory_files import read_trajectory
 
     if "truth" not in _WORKER:
         _WORKER["truth"] = _Truth()
@@ -375,8 +375,8 @@ def stage_truth(plan: Plan, workers: int) -> None:
 
 def _load_dataset(plan: Plan, robot):
     from experiments import generate as gen
-    from larc_jax.scene import read_scene
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.scene import read_scene
+    from larc_jax.model.trajectory_files import read_trajectory
 
     config = gen.load_config(CONFIG_PATH)
     scenes = {s: dataclasses.replace(read_scene(ROOT / config["scenes"][s]["file"]), name=s) for s in plan.scenes}

@@ -3,7 +3,7 @@
 Two measurements (paper, "Sampled MoveIt/FCL Audit and Computational Timing"):
 
 * **Whole batch** (:func:`batch_certify`): each method certifies the whole dataset in ONE
-  :func:`larc_jax.certify.certify` call. The first call compiles (JAX traces and compiles the
+  :func:`larc_jax.engine.certify.certify` call. The first call compiles (JAX traces and compiles the
   interval kernel for the dataset's shapes); it is reported separately as ``first_call_s`` and
   ``compile_s`` (first call minus the median warm call; also the XLA backend-compile seconds
   counted by a :mod:`jax.monitoring` listener). The batch time is the median of
@@ -45,7 +45,7 @@ __all__ = [
 
 CODE = ("experiments.timing",)
 ENCLOSURE = "capsules"
-"""Stage B reproduces the paper: its capsule model alone (the cascade of larc_jax.cascade is
+"""Stage B reproduces the paper: its capsule model alone (the cascade of larc_jax.leaf.cascade is
 measured by experiments.tightness)."""
 """Modules whose import closure is the certification and timing stages' code."""
 CLEAR_CACHES_AFTER_COMPILES = 200
@@ -94,7 +94,7 @@ def batch_certify(trajectories, scenes, robot, capsules, *, methods: Sequence[st
     warm call; ``rows`` one dict per method with the first-call (compile) and warm batch times.
     Raises ``RuntimeError`` if repeated calls disagree (the certifier must be deterministic).
     """
-    from larc_jax.certify import certify
+    from larc_jax.engine.certify import certify
 
     results, rows = {}, []
     bar = None
@@ -159,7 +159,7 @@ def paired_timing(trajectories, scenes, robot, capsules, *, seed: int, repeats: 
     is in ``skip`` (already timed) are not run, but their orders are still drawn, so a resumed
     run gives every trajectory the same method orders as an uninterrupted one.
     """
-    from larc_jax.certify import certify
+    from larc_jax.engine.certify import certify
 
     import jax
 

@@ -36,7 +36,7 @@ _loaded = False
 def _load() -> None:
     """Import the public API into this namespace (on first use: see :func:`__getattr__`)."""
     global _loaded
-    from .certify import Method, certify
+    from .engine.certify import Method, certify
     from .compilation import enable_compile_cache
     from .defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
     from .enclosure import (
@@ -51,28 +51,28 @@ def _load() -> None:
         verify_containment,
     )
     from .errors import LarcInputError
-    from .geometry import segment_box_distance, segment_box_distances
-    from .hermite import HermiteSpline, speed_max
-    from .interval import IntervalEval, evaluate_interval, interval_clearance
+    from .obstacles.geometry import segment_box_distance, segment_box_distances
+    from .model.hermite import HermiteSpline, speed_max
+    from .leaf.interval import IntervalEval, evaluate_interval, interval_clearance
     from .option_values import parse_hold, parse_joints, parse_package_dirs
-    from .results import DatasetResult, Leaf, LeafTable, TrajectoryResult
-    from .robot import JointType, Robot, forward_kinematics
+    from .engine.results import DatasetResult, Leaf, LeafTable, TrajectoryResult
+    from .model.robot import JointType, Robot, forward_kinematics
     from .run_spec import RunSpec
-    from .scene import Scene, read_moveit_scene, read_scene
-    from .stream import certify_stream
-    from .trajectory import Trajectory, finite_difference_velocities
-    from .trajectory_files import read_trajectory, write_trajectory
-    from .urdf import load_robot
-    from .certificate import write_certificate
-    from .verify import Refuted, VerifyPins, VerifyReport, verify_certificate  # last: it defers JAX, which is loaded by now
-    from .view import view  # NumPy; viser is imported when a view opens
+    from .model.scene import Scene, read_moveit_scene, read_scene
+    from .drivers.stream import certify_stream
+    from .model.trajectory import Trajectory, finite_difference_velocities
+    from .model.trajectory_files import read_trajectory, write_trajectory
+    from .model.urdf import load_robot
+    from .products.certificate import write_certificate
+    from .products.verify import Refuted, VerifyPins, VerifyReport, verify_certificate  # last: it defers JAX, which is loaded by now
+    from .products.view import view  # NumPy; viser is imported when a view opens
     globals().update({k: v for k, v in locals().items() if k in __all__})
     _loaded = True
 
 
 def __getattr__(name: str):
     # PEP 562: ``import larc_jax`` loads no JAX until an attribute is used, so that the
-    # NumPy-only checker (larc_jax.verify, `larc verify`) runs in a process without JAX
+    # NumPy-only checker (larc_jax.products.verify, `larc verify`) runs in a process without JAX
     # (larc_jax.lazy_jax). Any attribute loads the whole public API at once.
     if not _loaded and not name.startswith("__"):
         _load()
@@ -86,7 +86,7 @@ def __dir__():
 
 
 class _Package(types.ModuleType):
-    """Keeps the API names: importing a submodule of the same name (``larc_jax.certify``) before
+    """Keeps the API names: importing a submodule of the same name (``larc_jax.engine.certify``) before
     the API is loaded must not bind the module where :func:`certify` belongs."""
 
     def __setattr__(self, name, value):

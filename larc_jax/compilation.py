@@ -1,7 +1,7 @@
 """JAX compilation: the persistent compilation cache, and how long compiling took.
 
 Every ``certify`` call runs jitted kernels whose shapes depend on the dataset (waypoint, box and
-frontier size classes, :mod:`larc_jax.batch`); each new shape is traced, lowered and compiled by
+frontier size classes, :mod:`larc_jax.engine.batch`); each new shape is traced, lowered and compiled by
 XLA, seconds each on a CPU. JAX's *persistent compilation cache* keeps the compiled executables
 on disk, so a later process loads them instead of compiling again (it still traces and lowers,
 which computes the cache key).
@@ -19,14 +19,14 @@ which computes the cache key).
   An export is keyed by the SHA-256 of every source file of ``larc_jax``, the JAX and jaxlib
   versions, the backend, the x64 mode, and the call's static structure and argument shapes, so a
   changed library, JAX or argument never meets a stale kernel.
-* With the cache on, :func:`larc_jax.urdf.load_robot` also keeps the robot model it builds
-  (arrays and static structure, :func:`cached_robot` / :func:`keep_robot`), keyed by the same
-  library hash, the URDF's SHA-256 and the loader's arguments: a later process skips parsing the
+* With the cache on, :func:`larc_jax.model.urdf.load_robot` also keeps the robot model it builds
+  (arrays and static structure, :mod:`larc_jax.model.robot_cache`), keyed by the same
+  library hash (:func:`library_hash`), the URDF's SHA-256 and the loader's arguments: a later process skips parsing the
   URDF and importing its parser (yourdfpy, trimesh). The mesh files the URDF names are still
   checked to exist.
 * :class:`CompileClock` measures, while active, the seconds JAX spends tracing, lowering and
   compiling (or loading from the cache), from :mod:`jax.monitoring` events; ``certify`` reports
-  them as :attr:`larc_jax.results.DatasetResult.compile_time_s`, separately from the run time.
+  them as :attr:`larc_jax.engine.results.DatasetResult.compile_time_s`, separately from the run time.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import threading
 from pathlib import Path
 
 __all__ = ["CACHE_ENV", "default_cache_dir", "cache_dir_from_env", "enable_compile_cache", "cached_kernel_call",
-           "cached_robot", "keep_robot", "CompileClock"]
+           "CompileClock"]
 
 CACHE_ENV = "LARC_COMPILE_CACHE"
 """Environment variable: ``0`` / ``false`` / ``off`` / ``no`` turn the command line's cache off; a
@@ -86,8 +86,13 @@ _LOADED: dict = {}
 """Kernel key → jitted call of its export, for this process."""
 
 
+def export_dir() -> Path | None:
+    """The folder where traced kernels are kept, or None when the cache is off."""
+    return _EXPORT_DIR
+
+
 @functools.lru_cache(maxsize=1)
-def _library_hash() -> str:
+def library_hash() -> str:
     """SHA-256 of every source file of the package (any change gives new kernel keys)."""
     import jax
     import jaxlib
@@ -110,7 +115,7 @@ def cached_kernel_call(fn, args: tuple):
 
     leaves, treedef = jax.tree.flatten(args)
     avals = [jax.ShapeDtypeStruct(np.shape(x), np.result_type(getattr(x, "dtype", x))) for x in leaves]
-    key = hashlib.sha256("\0".join([_library_hash(), fn.__name__, str(jax.config.jax_enable_x64), str(treedef),
+    key = hashlib.sha256("\0".join([library_hash(), fn.__name__, str(jax.config.jax_enable_x64), str(treedef),
                                      repr([(a.shape, str(a.dtype)) for a in avals])]).encode()).hexdigest()
     call = _LOADED.get(key)
     if call is None:
@@ -135,68 +140,6 @@ def _load_or_export(fn, treedef, avals, path: Path):
         except OSError:  # an unwritable cache only costs the next process a trace
             pass
     return jax.jit(exported.call)
-
-
-def _robot_path(key_parts: dict) -> Path | None:
-    if _EXPORT_DIR is None:
-        return None
-    import json
-
-    key = hashlib.sha256((_library_hash() + json.dumps(key_parts, sort_keys=True, default=str)).encode()).hexdigest()
-    return _EXPORT_DIR.parent / "robots" / f"{key[:40]}.npz"
-
-
-def cached_robot(key_parts: dict):
-    """The :class:`~larc_jax.robot.Robot` kept by :func:`keep_robot` for these loader inputs
-    (which must include the URDF's SHA-256), or None (cache off, not kept yet, unreadable, or a
-    mesh file it names has gone)."""
-    path = _robot_path(key_parts)
-    if path is None or not path.is_file():
-        return None
-    import json
-
-    import numpy as np
-
-    from .robot import JointType, Robot
-
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            arrays = {k: np.array(z[k]) for k in ("T_parent_joint", "axis", "q_held", "q_lower", "q_upper")}
-    except Exception:  # noqa: BLE001 - unreadable: build the robot again
-        return None
-    if not all(Path(m).is_file() for m in meta.pop("meshes")):
-        return None  # let the loader name the missing file
-    meta = {k: tuple(tuple(x) if isinstance(x, list) else x for x in v) if isinstance(v, list) else v
-            for k, v in meta.items()}
-    meta["joint_type"] = tuple(JointType(t) for t in meta["joint_type"])
-    return Robot(**arrays, **meta)
-
-
-def keep_robot(key_parts: dict, robot, meshes) -> None:
-    """Keep ``robot`` (built from ``key_parts``) for :func:`cached_robot`; ``meshes`` are the
-    mesh files its URDF names."""
-    path = _robot_path(key_parts)
-    if path is None:
-        return
-    import dataclasses
-    import io
-    import json
-
-    import numpy as np
-
-    from .io import atomic_write_bytes
-
-    meta = {f.name: getattr(robot, f.name) for f in dataclasses.fields(robot) if f.metadata.get("static")}
-    meta["joint_type"] = [int(t) for t in meta["joint_type"]]
-    meta["meshes"] = [str(m) for m in meshes]
-    buf = io.BytesIO()
-    np.savez(buf, meta=np.array(json.dumps(meta)), **{k: np.asarray(getattr(robot, k)) for k in (
-        "T_parent_joint", "axis", "q_held", "q_lower", "q_upper")})
-    try:
-        atomic_write_bytes(path, buf.getvalue())
-    except OSError:
-        pass
 
 
 _TRACE = "/jax/core/compile/jaxpr_trace_duration"

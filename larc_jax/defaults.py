@@ -22,7 +22,7 @@ METHODS = ("larc", "fine", "coarse", "reference")
 ``DEFAULT_COARSE_DEPTH``), ``reference`` (the paper's Algorithm 1 in NumPy)."""
 VELOCITY_MODES = ("recorded", "finite-difference")
 """``recorded``: use the file's velocities (refuse a file without them); ``finite-difference``:
-compute them from the positions (:func:`larc_jax.trajectory.finite_difference_velocities`)."""
+compute them from the positions (:func:`larc_jax.model.trajectory.finite_difference_velocities`)."""
 DEFAULT_CHUNK_SIZE = 256
 """Trajectories per chunk when streaming (``certify_stream``, ``larc certify --manifest``): large
 enough to keep the frontier kernels busy, small enough that a chunk takes tens of MB."""
@@ -30,12 +30,12 @@ POSITION_TOLERANCE = 1e-6
 """Positions may exceed a joint limit by at most this much (rad or m): recorders round. The
 motion constants of joints above an active prismatic joint are derived for its limits widened by
 twice this (:mod:`larc_jax.enclosure.motion`), so larger excursions are refused
-(:func:`larc_jax.trajectory.validate_trajectory`), between waypoints too."""
+(:func:`larc_jax.model.trajectory.validate_trajectory`), between waypoints too."""
 DEFAULT_PADDING_M = 0.001
 """Padding added to fitted capsule radii (and to the hull parts) on top of the proven containment, m."""
 ENCLOSURES = ("hull", "capsules")
 """``hull``: the cascade (capsule test, then the convex-hull test on what it leaves open;
-:mod:`larc_jax.cascade`); ``capsules``: the capsule test alone (the paper's model)."""
+:mod:`larc_jax.leaf.cascade`); ``capsules``: the capsule test alone (the paper's model)."""
 DEFAULT_ENCLOSURE = ENCLOSURES[0]
 
 

@@ -4,7 +4,7 @@ reading of user files (text, YAML, JSON) that turns every way a file can be bad 
 
 It also holds the parsers of numbers and vectors that every reader shares
 (:func:`parse_number`, :func:`parse_vector`) and the array check of the Python API's records
-(:func:`real_array`). Trajectory and scene readers live in :mod:`larc_jax.trajectory` and :mod:`larc_jax.scene`.
+(:func:`real_array`). Trajectory and scene readers live in :mod:`larc_jax.model.trajectory` and :mod:`larc_jax.model.scene`.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Deferred JAX import, so that the NumPy float64 references run in a process without JAX.
 
-The independent checker (:mod:`larc_jax.verify`, ``larc verify``) re-checks a certificate with
-the NumPy references that live beside the JAX kernels (:func:`~larc_jax.interval.evaluate_interval_np`,
-:func:`~larc_jax.robot.forward_kinematics_np`, ...), and must not load JAX at all: its verdict
+The independent checker (:mod:`larc_jax.products.verify`, ``larc verify``) re-checks a certificate with
+the NumPy references that live beside the JAX kernels (:func:`~larc_jax.leaf.interval.evaluate_interval_np`,
+:func:`~larc_jax.model.robot.forward_kinematics_np`, ...), and must not load JAX at all: its verdict
 then depends on NumPy alone. The modules holding those references therefore reach JAX only
 through the proxies :data:`jax` and :data:`jnp` (the real module is imported on the first
 attribute access, i.e. when a kernel runs) and register their dataclasses as pytrees with
@@ -11,7 +11,7 @@ attribute access, i.e. when a kernel runs) and register their dataclasses as pyt
 By default :func:`pytree_dataclass` registers at once (importing JAX, as a plain
 ``@jax.tree_util.register_dataclass`` would). After :func:`defer_jax` (called by the checker
 before it imports anything else of the library) classes are queued instead, and registered when
-JAX is first reached through a proxy (importing :mod:`larc_jax.batch`, or any attribute of the
+JAX is first reached through a proxy (importing :mod:`larc_jax.engine.batch`, or any attribute of the
 ``larc_jax`` package, does); a class defined after JAX is loaded is registered at once. A process
 that deferred JAX and then hands these classes to JAX itself calls :func:`register_pytrees` first.
 """

@@ -80,7 +80,7 @@ def parse_capsules_per_link(items: Iterable[str] | str | None, option: str = "--
 def parse_tracking_tolerance(text: str, option: str = "--tracking-tolerance") -> float | dict[str, float]:
     """``RAD`` (every joint) as a float, or ``JOINT=VALUE,JOINT=VALUE,...`` as a dict (a joint
     given twice is refused); :attr:`~larc_jax.run_spec.RunSpec.tracking_tolerance` and
-    :func:`~larc_jax.tracking.check_tracking_tolerance` check the values."""
+    :func:`~larc_jax.enclosure.tracking.check_tracking_tolerance` check the values."""
     text = text.strip()
     if "=" not in text:
         try:

@@ -1,8 +1,8 @@
 """The run spec: one frozen, validated object holding every parameter that decides a certificate.
 
-:class:`RunSpec` is what :func:`~larc_jax.certify.certify`, :func:`~larc_jax.stream.certify_stream`,
-the manifest (:mod:`larc_jax.manifest`, its job and its resume state), Dask and the command line
-take, and what a :class:`~larc_jax.results.DatasetResult` carries (``result.spec``). It is
+:class:`RunSpec` is what :func:`~larc_jax.engine.certify.certify`, :func:`~larc_jax.drivers.stream.certify_stream`,
+the manifest (:mod:`larc_jax.drivers.manifest`, its job and its resume state), Dask and the command line
+take, and what a :class:`~larc_jax.engine.results.DatasetResult` carries (``result.spec``). It is
 validated once, when built (:class:`~larc_jax.errors.LarcInputError` naming the field), and
 round-trips exactly through JSON (:meth:`RunSpec.to_json` / :meth:`RunSpec.from_json`; floats are
 written as Python's shortest repr, which reads back to the same double). No JAX and no robot
@@ -30,11 +30,11 @@ from .io import short_repr as short
 __all__ = ["RunSpec", "DTYPES"]
 
 DTYPES = ("float64", "float32")
-"""Geometry dtypes (:mod:`larc_jax.interval`); times and the curve stay float64."""
+"""Geometry dtypes (:mod:`larc_jax.leaf.interval`); times and the curve stay float64."""
 
 
 def _choice(value, choices, what: str) -> str:
-    value = getattr(value, "value", value)  # an enum member (larc_jax.certify.Method)
+    value = getattr(value, "value", value)  # an enum member (larc_jax.engine.certify.Method)
     if not isinstance(value, str) or value not in choices:
         raise LarcInputError(f"{what} {value!r}: one of {', '.join(choices)}")
     return value
@@ -162,7 +162,7 @@ class RunSpec:
     # -- the forms other code takes --------------------------------------------------------
 
     def tolerance_arg(self):
-        """The tracking tolerance as :func:`~larc_jax.tracking.check_tracking_tolerance` takes it."""
+        """The tracking tolerance as :func:`~larc_jax.enclosure.tracking.check_tracking_tolerance` takes it."""
         tol = self.tracking_tolerance
         if isinstance(tol, tuple) and tol and isinstance(tol[0], tuple):
             return dict(tol)

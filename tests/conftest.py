@@ -48,14 +48,14 @@ def pytest_configure(config):
 
 @pytest.fixture(scope="session")
 def piper_dir() -> Path:
-    from larc_jax.urdf import piper_description_dir
+    from larc_jax.model.urdf import piper_description_dir
 
     return piper_description_dir()
 
 
 @pytest.fixture(scope="session")
 def robot():
-    from larc_jax.urdf import load_robot
+    from larc_jax.model.urdf import load_robot
 
     return load_robot()
 

@@ -18,7 +18,7 @@ from fractions import Fraction as F
 import numpy as np
 
 from larc_jax.enclosure import capsule_segments_np
-from larc_jax.geometry import segment_box_distance_np
+from larc_jax.obstacles.geometry import segment_box_distance_np
 
 
 def _segment(t, tt: F) -> int:

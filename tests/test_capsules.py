@@ -13,7 +13,7 @@ import yaml
 from larc_jax import LarcInputError
 from larc_jax.enclosure.fit import point_segment_distance
 from larc_jax.enclosure import capsule_segments, capsule_segments_np, default_capsule_path, link_elements, load_capsules, verify_containment
-from larc_jax.urdf import file_sha256
+from larc_jax.model.urdf import file_sha256
 
 
 def test_committed_file_matches_urdf(robot):

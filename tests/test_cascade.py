@@ -12,14 +12,14 @@ import pytest
 from scipy.interpolate import CubicHermiteSpline
 
 import larc_jax as lj
-from larc_jax.cascade import Links, combine, interval_pairs, interval_pairs_np, select_pairs
-from larc_jax.interval import rebase_ends, trajectory_rounding
+from larc_jax.leaf.cascade import Links, combine, interval_pairs, interval_pairs_np, select_pairs
+from larc_jax.leaf.interval import rebase_ends, trajectory_rounding
 from larc_jax.enclosure.hull import hull_model
 from larc_jax.enclosure.robot_file import load_robot_file
-from larc_jax.hermite import HermiteSpline
-from larc_jax.robot import forward_kinematics_np
-from larc_jax.scene import Scene, pad_scenes
-from larc_jax.trajectory import Trajectory
+from larc_jax.model.hermite import HermiteSpline
+from larc_jax.model.robot import forward_kinematics_np
+from larc_jax.model.scene import Scene, pad_scenes
+from larc_jax.model.trajectory import Trajectory
 
 
 MARGIN = 0.01

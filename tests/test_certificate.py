@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from larc_jax.certificate import hexf, unhexf
-from larc_jax.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
+from larc_jax.products.certificate import hexf, unhexf
+from larc_jax.drivers.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
 from larc_jax.errors import LarcInputError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -96,7 +96,7 @@ def _certificate_uses_the_results_hulls(result, traj, scene, robot, capsules, do
     parts, which larc verify would not prove, are refused; so is a result without its run spec."""
     import dataclasses
 
-    from larc_jax.certificate import certificate
+    from larc_jax.products.certificate import certificate
     from larc_jax.enclosure.hull import hull_model
 
     own = hull_model(robot, capsules.hull_parts, capsules.padding_m)
@@ -247,7 +247,7 @@ def test_bad_fields_and_files_exit_2(cli_cert, tmp_path, capsys):
 
 def test_checker_process_never_imports_jax(cli_cert):
     path, _ = cli_cert
-    code = ("import sys\nfrom larc_jax.cli import main\nrc = main(['verify', sys.argv[1], '-q'])\n"
+    code = ("import sys\nfrom larc_jax.drivers.cli import main\nrc = main(['verify', sys.argv[1], '-q'])\n"
             "assert 'jax' not in sys.modules and 'jaxlib' not in sys.modules, 'jax was imported'\nsys.exit(rc)\n")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, env=env,
@@ -283,9 +283,9 @@ def test_float32_certificate_verifies(tmp_path, robot, capsules):
 
 def test_deferred_jax_registers_the_pytrees_when_jax_is_used():
     """After the checker deferred JAX, the first JAX module of the library registers the pytrees."""
-    code = ("import sys\nimport larc_jax\nassert 'jax' not in sys.modules\nimport larc_jax.verify\n"
+    code = ("import sys\nimport larc_jax\nassert 'jax' not in sys.modules\nimport larc_jax.products.verify\n"
             "from larc_jax.enclosure.robot_file import load_robot_file\nrobot, caps = load_robot_file()\n"
-            "assert 'jax' not in sys.modules\nimport larc_jax.batch\nimport jax\n"
+            "assert 'jax' not in sys.modules\nimport larc_jax.engine.batch\nimport jax\n"
             "assert len(jax.tree.leaves(robot)) == 5 and len(jax.tree.leaves(caps)) == 4\n")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)

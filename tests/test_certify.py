@@ -11,12 +11,12 @@ from scipy.interpolate import CubicHermiteSpline
 
 from larc_jax import LarcInputError
 from larc_jax.enclosure import capsule_segments_np
-from larc_jax.certify import certify
-from larc_jax.interval import interval_clearance, interval_clearance_np, rebase_ends, trajectory_rounding
-from larc_jax.geometry import segment_box_distance_np
-from larc_jax.hermite import HermiteSpline
-from larc_jax.scene import Scene, pad_scenes
-from larc_jax.trajectory import Trajectory
+from larc_jax.engine.certify import certify
+from larc_jax.leaf.interval import interval_clearance, interval_clearance_np, rebase_ends, trajectory_rounding
+from larc_jax.obstacles.geometry import segment_box_distance_np
+from larc_jax.model.hermite import HermiteSpline
+from larc_jax.model.scene import Scene, pad_scenes
+from larc_jax.model.trajectory import Trajectory
 
 MARGIN = 0.01
 
@@ -41,7 +41,7 @@ def random_scene(rng, k, max_boxes=4):
 
 def dense_clearance(robot, capsules, traj, scene, hz=10_000):
     """Exact capsule-box distance (segment-box distance minus radius) on a >= 10 kHz grid of the
-    trajectory, with SciPy's Hermite spline (independent of larc_jax.hermite)."""
+    trajectory, with SciPy's Hermite spline (independent of larc_jax.model.hermite)."""
     spline = CubicHermiteSpline(traj.t, traj.q, traj.qd)
     n = max(2, int(math.ceil(traj.duration * hz)) + 1)
     ts = np.linspace(traj.t[0], traj.t[-1], n)

@@ -6,8 +6,8 @@ import jax
 import numpy as np
 import pytest
 
-from larc_jax.clearance import min_clearance, min_clearance_np, segment_box_lower_bound
-from larc_jax.geometry import segment_box_distance_np
+from larc_jax.leaf.clearance import min_clearance, min_clearance_np, segment_box_lower_bound
+from larc_jax.obstacles.geometry import segment_box_distance_np
 
 
 def random_case(rng, S=11, B=5, spread=0.5):
@@ -62,8 +62,8 @@ def test_broad_phase_changes_no_result(monkeypatch):
     """certify with the broad-phase kernel (and its all-pairs fallback) gives bit-identical
     leaves to the all-pairs kernel on random trajectories and scenes with many boxes."""
     import larc_jax as lj
-    from larc_jax import batch as B
-    from larc_jax.results import LEAF_COLUMNS
+    from larc_jax.engine import batch as B
+    from larc_jax.engine.results import LEAF_COLUMNS
 
     from .test_certify import random_scene, random_trajectory
 

@@ -33,7 +33,7 @@ boxes:
 
 def run_larc(*args, cwd):
     env = dict(os.environ)
-    return subprocess.run([sys.executable, "-m", "larc_jax.cli", *args], cwd=cwd, env=env,
+    return subprocess.run([sys.executable, "-m", "larc_jax.drivers.cli", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -96,7 +96,7 @@ def test_bad_scene_exit_2(files):
 
 
 # ----------------------------------------------------------------------------------------------
-# In-process tests (larc_jax.cli.main with capsys: no new process, JAX compiled once)
+# In-process tests (larc_jax.drivers.cli.main with capsys: no new process, JAX compiled once)
 # ----------------------------------------------------------------------------------------------
 
 from pathlib import Path  # noqa: E402
@@ -104,7 +104,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from larc_jax import cli  # noqa: E402
+from larc_jax.drivers import cli  # noqa: E402
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
 OK = str(EXAMPLES / "reach_left.yaml")       # certified in cell.yaml
@@ -191,7 +191,7 @@ def test_internal_error_is_exit_3_not_1(capsys, monkeypatch):
     def boom(*args, **kwargs):
         raise RuntimeError("simulated bug")
 
-    monkeypatch.setattr(sys.modules["larc_jax.certify"], "certify", boom)
+    monkeypatch.setattr(sys.modules["larc_jax.engine.certify"], "certify", boom)
     rc, _, err = larc(capsys, "certify", OK, "--scene", CELL)
     assert rc == 3 and "simulated bug" in err and "internal error" in err
 
@@ -274,8 +274,8 @@ def test_explain_writes_png_of_the_blocking_interval(tmp_path, capsys):
 
 def test_explain_takes_every_run_spec_option():
     """explain's options build the same RunSpec as certify's (its certify run and re-evaluation use it)."""
-    from larc_jax.cli import _certificate_options
-    from larc_jax.cli_parser import build_parser
+    from larc_jax.drivers.cli import _certificate_options
+    from larc_jax.drivers.cli_parser import build_parser
 
     opts = ["--scene", CELL, "--margin", "0.02", "--max-depth", "5", "--dtype", "float32", "--enclosure", "hull",
             "--self-collision", "--self-margin", "0.003", "--self-skip", "link1:link4", "--tracking-tolerance",
@@ -308,7 +308,7 @@ def test_explain_bad_input(tmp_path, capsys):
 def test_explain_recomputes_the_interval_test(robot, capsules):
     """The picture's numbers are the certificate's: same g(I), and g = d - (r + rho + b)."""
     import larc_jax as lj
-    from larc_jax.explain import choose_leaf, explain
+    from larc_jax.products.explain import choose_leaf, explain
 
     scene = lj.read_scene(CELL)
     for path in (OK, BLOCKED):

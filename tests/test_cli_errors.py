@@ -26,8 +26,8 @@ import yaml
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from larc_jax.cli import build_parser, main
-from larc_jax.trajectory import MAX_WAYPOINTS
+from larc_jax.drivers.cli import build_parser, main
+from larc_jax.model.trajectory import MAX_WAYPOINTS
 
 ROOT = Path(__file__).resolve().parent.parent
 JOINTS = [f"joint{i}" for i in range(1, 7)]
@@ -117,7 +117,7 @@ def write(path: Path, content) -> None:
 
 
 def robot_doc(**changes) -> dict:
-    from larc_jax.urdf import piper_urdf_path
+    from larc_jax.model.urdf import piper_urdf_path
 
     doc = yaml.safe_load((ROOT / "larc_jax" / "data" / "piper_capsules.yaml").read_text())
     doc = {"urdf": str(piper_urdf_path()), **doc}
@@ -441,7 +441,7 @@ def test_subprocess_bad_inputs_one_line(tmp_path):
         tmp = tmp_path / name
         tmp.mkdir()
         argv = _argv(case, tmp)
-        p = subprocess.run([sys.executable, "-m", "larc_jax.cli", *argv], cwd=ROOT, env=env,
+        p = subprocess.run([sys.executable, "-m", "larc_jax.drivers.cli", *argv], cwd=ROOT, env=env,
                            capture_output=True, text=True, timeout=300)
         check_one_error_line(p.returncode, p.stderr, case.needles)
         assert p.stdout == ""

@@ -24,7 +24,7 @@ def model(robot):
 
 def _world_vertices(model, q):
     """link name -> (V, 3) world vertices of its collision meshes (no FCL involved)."""
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.robot import forward_kinematics_np
 
     T = forward_kinematics_np(model.robot, np.asarray(q, float))
     out = {}
@@ -37,7 +37,7 @@ def _world_vertices(model, q):
 
 def _world_triangles(model, q):
     """(F, 3, 3) world triangles of every link's collision mesh (no FCL involved)."""
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.robot import forward_kinematics_np
 
     T = forward_kinematics_np(model.robot, np.asarray(q, float))
     tris = []
@@ -197,7 +197,7 @@ def test_audit_scene_reader_is_the_librarys(tmp_path):
     """The audit reads scenes with the library's reader: same errors, same boxes (also .scene)."""
     from experiments.collision import SceneBoxes
     from larc_jax.errors import LarcInputError
-    from larc_jax.scene import read_scene
+    from larc_jax.model.scene import read_scene
 
     p = tmp_path / "s.yaml"
     p.write_text("frame: base_link\nboxes:\n  - {name: a, min: [0, 0, 1], max: [1, 1, 0]}\n")

@@ -17,13 +17,13 @@ ARGS = ["certify", str(EXAMPLES / "reach_left.yaml"), "--scene", str(EXAMPLES / 
 
 def run(tmp_path, *args, **env):
     e = dict(os.environ, **env)
-    return subprocess.run([sys.executable, "-m", "larc_jax.cli", *args], cwd=tmp_path, env=e, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "larc_jax.drivers.cli", *args], cwd=tmp_path, env=e, capture_output=True,
                           text=True, timeout=300)
 
 
 def test_help_has_no_raw_rest_markup():
     for sub in ([], ["certify"], ["explain"], ["fit-capsules"], ["verify"]):
-        p = subprocess.run([sys.executable, "-m", "larc_jax.cli", *sub, "--help"], capture_output=True, text=True)
+        p = subprocess.run([sys.executable, "-m", "larc_jax.drivers.cli", *sub, "--help"], capture_output=True, text=True)
         assert p.returncode == 0 and "`" not in p.stdout, p.stdout
 
 
@@ -106,11 +106,11 @@ def test_exported_kernel_is_the_same_computation(tmp_path, monkeypatch, robot, c
     cleared)."""
     import numpy as np
 
-    from larc_jax import batch as B
+    from larc_jax.engine import batch as B
     from larc_jax import compilation
-    from larc_jax.interval import trajectory_rounding
-    from larc_jax.scene import read_scene
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.leaf.interval import trajectory_rounding
+    from larc_jax.model.scene import read_scene
+    from larc_jax.model.trajectory_files import read_trajectory
 
     monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
     monkeypatch.setattr(compilation, "_LOADED", {})
@@ -144,7 +144,8 @@ def test_kept_robot_is_the_built_robot(tmp_path, monkeypatch):
     import numpy as np
 
     from larc_jax import compilation
-    from larc_jax.urdf import load_robot
+    from larc_jax.model import robot_cache
+    from larc_jax.model.urdf import load_robot
 
     monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
     built = load_robot()
@@ -162,5 +163,5 @@ def test_kept_robot_is_the_built_robot(tmp_path, monkeypatch):
     load_robot(held_joint_values={"joint7": -0.01})
     assert len(list((tmp_path / "robots").glob("*.npz"))) == 2
     key = {"any": "thing"}
-    compilation.keep_robot(key, built, [tmp_path / "gone.stl"])
-    assert compilation.cached_robot(key) is None
+    robot_cache.keep_robot(key, built, [tmp_path / "gone.stl"])
+    assert robot_cache.cached_robot(key) is None

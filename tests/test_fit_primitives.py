@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from larc_jax import LarcInputError
-from larc_jax.cli import main as larc_main
+from larc_jax.drivers.cli import main as larc_main
 from larc_jax.enclosure import fit_capsules, load_robot_file, verify_containment
-from larc_jax.urdf import load_robot
+from larc_jax.model.urdf import load_robot
 
 URDF = """<?xml version="1.0"?>
 <robot name="primitives">

@@ -50,7 +50,7 @@ def test_protocol_file(config):
 
 
 def test_generation_writes_valid_files(generated, robot, config):
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.trajectory_files import read_trajectory
 
     out, summary = generated
     assert summary["n_pairs_accepted"] == 1
@@ -74,7 +74,7 @@ def test_generation_writes_valid_files(generated, robot, config):
     # Velocity limits (0.1 x yaml) hold at the recorded waypoints (small TOPP-RA tolerance).
     assert np.abs(planned.qd).max() <= 0.5 * 1.02
     # Start and goal are on opposite sides of the wall (gripper-base point).
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.robot import forward_kinematics_np
 
     xs = sorted(forward_kinematics_np(robot, q)[robot.link_index("link7")][0, 3] for q in (start, goal))
     assert xs[0] <= 0.15 and xs[1] >= 0.29
@@ -91,7 +91,7 @@ def test_accepted_trajectory_passes_audit(generated, robot, config):
     from experiments.audit import audit_trajectory
     from experiments.collision import CollisionModel, SceneBoxes
     from experiments.self_collision import load_allowed_pairs
-    from larc_jax.trajectory_files import read_trajectory
+    from larc_jax.model.trajectory_files import read_trajectory
 
     out, _ = generated
     model = CollisionModel(robot)
@@ -103,7 +103,7 @@ def test_accepted_trajectory_passes_audit(generated, robot, config):
     assert res["audit_collision"] is False and res["first_collision_t"] is None
     assert res["self_collision"] is False
     # The same trajectory against a box around the start pose collides at t = 0.
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.robot import forward_kinematics_np
 
     p = forward_kinematics_np(robot, traj.q[0])[robot.link_index("link6")][:3, 3]
     hit = audit_trajectory(traj, (p[None] - 0.03, p[None] + 0.03), model, hz=250, allowed_pairs=allowed)

@@ -1,4 +1,4 @@
-"""Tests for larc_jax.geometry: exact segment-box distance (JAX kernel, NumPy reference, batch)."""
+"""Tests for larc_jax.obstacles.geometry: exact segment-box distance (JAX kernel, NumPy reference, batch)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from larc_jax.geometry import (
+from larc_jax.obstacles.geometry import (
     segment_box_distance,
     segment_box_distance_np,
     segment_box_distances,

@@ -11,14 +11,14 @@ import pytest
 
 import larc_jax as lj
 from larc_jax import LarcInputError
-from larc_jax.cli import main
+from larc_jax.drivers.cli import main
 from larc_jax.enclosure import link_elements
 from larc_jax.enclosure.fit import point_segment_distance
 from larc_jax.enclosure.hull import hull_model
 from larc_jax.enclosure.meshes import held_joint_states, stroke_shifts
 from larc_jax.enclosure.robot_file import load_robot_file
-from larc_jax.robot import forward_kinematics_np
-from larc_jax.urdf import load_robot
+from larc_jax.model.robot import forward_kinematics_np
+from larc_jax.model.urdf import load_robot
 
 HOLD = {"joint7": 0.0, "joint8": 0.0}
 

@@ -1,4 +1,4 @@
-"""Tests for larc_jax.hermite: Hermite reconstruction and exact joint-speed maxima (paper eq. 5).
+"""Tests for larc_jax.model.hermite: Hermite reconstruction and exact joint-speed maxima (paper eq. 5).
 
 Independent references: SciPy's ``CubicHermiteSpline`` (positions, derivatives, dense
 sampling, exact second-derivative bound) and the NumPy loop reference ``speed_max_np`` (power
@@ -15,7 +15,7 @@ import pytest
 from scipy.interpolate import CubicHermiteSpline
 
 from larc_jax.errors import LarcInputError
-from larc_jax.hermite import (
+from larc_jax.model.hermite import (
     HermiteSpline,
     batch_from_waypoints,
     evaluate,

@@ -17,12 +17,12 @@ from pathlib import Path
 import pytest
 
 import larc_jax.io as lio
-from larc_jax.cli import EXIT_BAD_INPUT, EXIT_OK, main
+from larc_jax.drivers.cli import EXIT_BAD_INPUT, EXIT_OK, main
 from larc_jax.enclosure.robot_file import load_robot_file
 from larc_jax.errors import LarcInputError, one_line
-from larc_jax.scene import read_scene
-from larc_jax.trajectory_files import read_trajectory
-from larc_jax.verify import Refuted, verify_certificate
+from larc_jax.model.scene import read_scene
+from larc_jax.model.trajectory_files import read_trajectory
+from larc_jax.products.verify import Refuted, verify_certificate
 
 ROOT = Path(__file__).resolve().parent.parent
 EX = ROOT / "configs" / "examples"
@@ -47,13 +47,13 @@ def cert(tmp_path_factory):
 
 _CHILD = r"""
 import json, sys, time
-import larc_jax.verify as v  # defers JAX first, as `larc verify` does
+import larc_jax.products.verify as v  # defers JAX first, as `larc verify` does
 from larc_jax.enclosure.robot_file import load_robot_file
 from larc_jax.errors import LarcInputError
-from larc_jax.manifest import iter_manifest
-from larc_jax.scene import read_scene
-from larc_jax.trajectory_files import read_trajectory
-from larc_jax.urdf import file_sha256
+from larc_jax.drivers.manifest import iter_manifest
+from larc_jax.model.scene import read_scene
+from larc_jax.model.trajectory_files import read_trajectory
+from larc_jax.model.urdf import file_sha256
 
 folder, cert = sys.argv[1], sys.argv[2]
 readers = {
@@ -113,7 +113,7 @@ def test_cli_refuses_non_regular_files(tmp_path, args):
     os.mkfifo(tmp_path / "fifo.yaml")
     (tmp_path / "zero.json").symlink_to("/dev/zero")
     argv = [a.format(fifo=tmp_path / "fifo", zero=tmp_path / "zero") for a in args]
-    proc = subprocess.run([sys.executable, "-m", "larc_jax.cli", *argv], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-m", "larc_jax.drivers.cli", *argv], capture_output=True, text=True, timeout=120)
     assert proc.returncode == EXIT_BAD_INPUT and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "expected a regular file" in proc.stderr
 

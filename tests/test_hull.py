@@ -10,7 +10,7 @@ import pytest
 from larc_jax import LarcInputError
 from larc_jax.enclosure import link_elements
 from larc_jax.enclosure.hull import build_parts, choose_split, hull_model, split_mask, support_set, verify_support
-from larc_jax.robot import forward_kinematics
+from larc_jax.model.robot import forward_kinematics
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from larc_jax import cli
+from larc_jax.drivers import cli
 from larc_jax.errors import LarcInputError
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"

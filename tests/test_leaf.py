@@ -1,11 +1,11 @@
-"""The leaf composition rule (larc_jax.leaf): one rule, NumPy and JAX alike, NaN never passes."""
+"""The leaf composition rule (larc_jax.leaf.record): one rule, NumPy and JAX alike, NaN never passes."""
 
 import math
 
 import numpy as np
 import pytest
 
-from larc_jax.leaf import LeafRecord, Stage, box_record, compose, needs_hull, passes, self_record
+from larc_jax.leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, passes, self_record
 
 
 def _records(rng, n):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from larc_jax.polytope import polytope_box_lower_bound, polytope_box_lower_bound_np
+from larc_jax.obstacles.polytope import polytope_box_lower_bound, polytope_box_lower_bound_np
 
 
 def _kernel(V, centre, R, t, lo, hi, dtype=np.float64):

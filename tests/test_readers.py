@@ -12,9 +12,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from larc_jax.errors import LarcInputError
-from larc_jax.scene import read_moveit_scene, read_scene
-from larc_jax.trajectory import finite_difference_velocities
-from larc_jax.trajectory_files import read_trajectory, trajectory_from_msg, write_trajectory
+from larc_jax.model.scene import read_moveit_scene, read_scene
+from larc_jax.model.trajectory import finite_difference_velocities
+from larc_jax.model.trajectory_files import read_trajectory, trajectory_from_msg, write_trajectory
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
 NAMES = [f"joint{i}" for i in range(1, 7)]
@@ -84,7 +84,7 @@ def test_rotated_box_warning_prints_corners_rounded_outwards(tmp_path, caplog):
 
 
 def test_example_scene_rotated_box_enclosed_and_warned(caplog):
-    with caplog.at_level(logging.WARNING, logger="larc_jax.scene"):
+    with caplog.at_level(logging.WARNING, logger="larc_jax.model.scene"):
         scene = read_scene(EXAMPLES / "pick.scene")
     assert scene.box_names == ("crate", "post")
     np.testing.assert_allclose(scene.lo[0], [-0.8, -0.8, 0.0], atol=1e-15)
@@ -354,7 +354,7 @@ def test_csv_errors_name_file_line_column(tmp_path, robot, head, rows, needle):
 
 
 def test_waypoint_limit_applies_to_csv_and_yaml(tmp_path, robot, monkeypatch):
-    import larc_jax.trajectory_files as tr
+    import larc_jax.model.trajectory_files as tr
 
     monkeypatch.setattr(tr, "MAX_WAYPOINTS", 2)
     with pytest.raises(LarcInputError, match="more than 2 waypoints"):
@@ -379,7 +379,7 @@ def test_trajectory_from_msg_unwraps_robot_trajectory():
 
 @pytest.mark.slow
 def test_cli_formats_and_exit_codes(tmp_path, capsys):
-    from larc_jax.cli import main
+    from larc_jax.drivers.cli import main
 
     ex = {name: str(EXAMPLES / name) for name in
           ("echo_joint_trajectory.yaml", "traj.csv", "positions_only.csv", "pick.scene")}

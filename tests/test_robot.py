@@ -11,8 +11,8 @@ import pytest
 import yourdfpy
 
 from larc_jax import LarcInputError
-from larc_jax.robot import JointType, forward_kinematics, forward_kinematics_np
-from larc_jax.urdf import load_robot
+from larc_jax.model.robot import JointType, forward_kinematics, forward_kinematics_np
+from larc_jax.model.urdf import load_robot
 
 
 def test_piper_structure(robot):
@@ -81,7 +81,7 @@ def test_joint_without_limits_is_named(piper_dir, tmp_path):
 
 def test_active_fingers_branch_off_the_chain(robot):
     """Active joints may branch (an arm and both fingers): FK places the fingers by q."""
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.robot import forward_kinematics_np
 
     r = load_robot(robot.urdf_path, active_joints=["joint1", "joint7", "joint8"])
     assert r.n_joints == 3 and r.stroke_joints == ()
@@ -107,7 +107,7 @@ def test_unknown_joint_and_missing_file(robot, tmp_path):
 
 
 def test_env_var_resolution(monkeypatch, tmp_path):
-    from larc_jax.urdf import piper_description_dir
+    from larc_jax.model.urdf import piper_description_dir
 
     monkeypatch.setenv("LARC_PIPER_DESCRIPTION", str(tmp_path))
     with pytest.raises(LarcInputError, match="LARC_PIPER_DESCRIPTION"):

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from larc_jax import LarcInputError, Scene, Trajectory, certify
-from larc_jax.cli import main as larc_main
+from larc_jax.drivers.cli import main as larc_main
 from larc_jax.enclosure import capsule_segments_np, default_capsule_path, load_capsules, load_robot_file, verify_containment
 from larc_jax.enclosure.fit import point_segment_distance
 from larc_jax.enclosure.meshes import collision_geometry, link_elements
@@ -69,7 +69,7 @@ def test_mesh_scaled_after_fitting_is_refused(piper_copy, robot, capsules, capsy
     c = caps_c.names.index("link6")
     pa, pb = capsule_segments_np(robot, capsules, q)
     far = int(np.argmax(np.linalg.norm(link_elements(robot_c, "link6").reshape(-1, 3), axis=1)))
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.robot import forward_kinematics_np
 
     T = forward_kinematics_np(robot, q)[robot.link_index("link6")]
     p_far = T[:3, :3] @ link_elements(robot_c, "link6").reshape(-1, 3)[far] + T[:3, 3]
@@ -97,7 +97,7 @@ def test_mesh_scaled_after_fitting_is_refused(piper_copy, robot, capsules, capsy
     scene_file = robot_file.parent / "scene.yaml"
     scene_file.write_text(yaml.safe_dump({"frame": "base_link", "boxes": [
         {"name": "box", "min": scene.lo[0].tolist(), "max": scene.hi[0].tolist()}]}))
-    from larc_jax.trajectory_files import write_trajectory
+    from larc_jax.model.trajectory_files import write_trajectory
 
     traj_file = robot_file.parent / "still.yaml"
     write_trajectory(traj_file, traj)
@@ -136,7 +136,7 @@ def test_recorded_geometry_must_match(robot, tmp_path, edit, msg):
 
 def test_primitive_parameters_are_recorded(tmp_path):
     from .test_fit_primitives import write_primitive_urdf
-    from larc_jax.urdf import load_robot
+    from larc_jax.model.urdf import load_robot
 
     urdf = write_primitive_urdf(tmp_path)
     geom = collision_geometry(load_robot(urdf))
@@ -150,7 +150,7 @@ def test_verify_capsules_command(capsys, tmp_path, robot):
     assert rc == 0 and "containment proven for" in out and "9 links in 11 capsules" in out
     # Not contained: exit 2, naming the link and the element.
     doc = yaml.safe_load(default_capsule_path().read_text())
-    from larc_jax.urdf import piper_urdf_path
+    from larc_jax.model.urdf import piper_urdf_path
 
     doc = {"urdf": str(piper_urdf_path()), **doc}
     doc["capsules"][3]["radius"] = round(doc["capsules"][3]["radius"] - 0.005, 6)

@@ -1,4 +1,4 @@
-"""The floating-point error budget of larc_jax.interval: time rounding (false-safe at large start
+"""The floating-point error budget of larc_jax.leaf.interval: time rounding (false-safe at large start
 times), every bound of the budget against measured errors, and exact soundness checks of
 certified leaves (rational curve evaluation between floats, exact distances)."""
 
@@ -16,11 +16,11 @@ from hypothesis import strategies as st
 
 from larc_jax import Scene, Trajectory, certify
 from larc_jax.enclosure import capsule_segments, capsule_segments_np
-from larc_jax.geometry import segment_box_distance
-from larc_jax.hermite import HermiteSpline, evaluate, speed_max
-from larc_jax.interval import (K_DIST_ABS, K_DIST_REL, K_FK, K_POS, K_SPEED, K_TIME, rebase_ends, time_offset,
+from larc_jax.obstacles.geometry import segment_box_distance
+from larc_jax.model.hermite import HermiteSpline, evaluate, speed_max
+from larc_jax.leaf.interval import (K_DIST_ABS, K_DIST_REL, K_FK, K_POS, K_SPEED, K_TIME, rebase_ends, time_offset,
                                trajectory_rounding)
-from larc_jax.robot import JointType
+from larc_jax.model.robot import JointType
 
 from .exact import (hermite_exact, leaf_min_clearance, min_clearance, segment_box_sq_distance_exact,
                     speed_max_exact)

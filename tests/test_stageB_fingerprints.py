@@ -30,14 +30,14 @@ def test_stage_code_closures():
     from experiments.fingerprints import code_closure
 
     cert = code_closure(["experiments.timing"])
-    for m in ("larc_jax.certify", "larc_jax.batch", "larc_jax.interval", "larc_jax.geometry", "larc_jax.hermite",
-              "larc_jax.robot", "larc_jax.enclosure.robot_file", "larc_jax.trajectory_files", "experiments.common"):
+    for m in ("larc_jax.engine.certify", "larc_jax.engine.batch", "larc_jax.leaf.interval", "larc_jax.obstacles.geometry", "larc_jax.model.hermite",
+              "larc_jax.model.robot", "larc_jax.enclosure.robot_file", "larc_jax.model.trajectory_files", "experiments.common"):
         assert m in cert, m
-    for m in ("larc_jax.cli", "larc_jax.explain", "larc_jax.report", "larc_jax", "experiments.tables",
+    for m in ("larc_jax.drivers.cli", "larc_jax.products.explain", "larc_jax.products.report", "larc_jax", "experiments.tables",
               "experiments.fingerprints"):
         assert m not in cert, m
     gen = code_closure(["experiments.generate"])
-    assert "larc_jax.certify" not in gen and "experiments.collision" in gen and "larc_jax.enclosure.meshes" in gen
+    assert "larc_jax.engine.certify" not in gen and "experiments.collision" in gen and "larc_jax.enclosure.meshes" in gen
     assert not any(m.startswith("larc_jax") for m in code_closure(["experiments.stageB_report"])
                    if m not in ("larc_jax.io", "larc_jax.errors"))
 

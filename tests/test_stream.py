@@ -13,9 +13,9 @@ import pandas as pd
 import pytest
 
 import larc_jax as lj
-from larc_jax.cli import main as larc_main
-from larc_jax.manifest import ManifestJob, certify_manifest
-from larc_jax.trajectory_files import write_trajectory
+from larc_jax.drivers.cli import main as larc_main
+from larc_jax.drivers.manifest import ManifestJob, certify_manifest
+from larc_jax.model.trajectory_files import write_trajectory
 
 from .test_certify import random_scene, random_trajectory
 
@@ -121,7 +121,7 @@ def test_manifest_cli_matches_certify_and_resumes(tmp_path, small_dataset, robot
     pd.testing.assert_frame_equal(again, got)
 
     # A run killed after two chunks loses nothing and duplicates nothing when resumed.
-    import larc_jax.manifest as mf
+    import larc_jax.drivers.manifest as mf
 
     out2 = tmp_path / "r2.parquet"
     calls = {"n": 0}
@@ -210,8 +210,8 @@ DASK = textwrap.dedent("""
     if __name__ == "__main__":
         import pandas as pd
         from dask.distributed import Client, LocalCluster
-        from larc_jax.distributed import certify_manifest_dask
-        from larc_jax.manifest import ManifestJob, certify_manifest
+        from larc_jax.drivers.distributed import certify_manifest_dask
+        from larc_jax.drivers.manifest import ManifestJob, certify_manifest
         from larc_jax.run_spec import RunSpec
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \\
                 Client(cluster) as client:
@@ -251,7 +251,7 @@ def test_certify_in_batches_equals_one_batch(monkeypatch):
 
     from .test_certify import random_scene, random_trajectory
 
-    C = importlib.import_module("larc_jax.certify")  # the module (larc_jax.certify is the function)
+    C = importlib.import_module("larc_jax.engine.certify")  # the module (larc_jax.engine.certify is the function)
     robot = lj.load_robot()
     capsules = lj.load_capsules(lj.default_capsule_path(), robot)
     rng = np.random.default_rng(11)

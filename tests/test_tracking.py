@@ -1,4 +1,4 @@
-"""Joint tracking-error tolerance (larc_jax.tracking): validation, kernel vs reference, monotonicity,
+"""Joint tracking-error tolerance (larc_jax.enclosure.tracking): validation, kernel vs reference, monotonicity,
 and soundness against perturbed executions sampled within the tolerance."""
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ import pytest
 from scipy.interpolate import CubicHermiteSpline
 
 from larc_jax import LarcInputError, certify
-from larc_jax.cli import main
+from larc_jax.drivers.cli import main
 from larc_jax.enclosure import capsule_segments_np
-from larc_jax.geometry import segment_box_distance_np, segment_box_distances
-from larc_jax.hermite import HermiteSpline
-from larc_jax.interval import interval_clearance, interval_clearance_np, rebase_ends, trajectory_rounding
-from larc_jax.scene import Scene, pad_scenes
-from larc_jax.tracking import check_tracking_tolerance, parse_tracking_tolerance, tracked_capsules, tracking_radius
-from larc_jax.trajectory import Trajectory
-from larc_jax.trajectory_files import write_trajectory
+from larc_jax.obstacles.geometry import segment_box_distance_np, segment_box_distances
+from larc_jax.model.hermite import HermiteSpline
+from larc_jax.leaf.interval import interval_clearance, interval_clearance_np, rebase_ends, trajectory_rounding
+from larc_jax.model.scene import Scene, pad_scenes
+from larc_jax.enclosure.tracking import check_tracking_tolerance, parse_tracking_tolerance, tracked_capsules, tracking_radius
+from larc_jax.model.trajectory import Trajectory
+from larc_jax.model.trajectory_files import write_trajectory
 from tests.test_certify import random_scene, random_trajectory
 
 MARGIN = 0.01

@@ -14,14 +14,14 @@ from pathlib import Path
 import pytest
 import yaml
 
-from larc_jax.certificate_fields import CERTIFICATE_FIELDS
+from larc_jax.products.certificate_fields import CERTIFICATE_FIELDS
 from larc_jax.enclosure import default_capsule_path
 from larc_jax.enclosure.robot_file import load_capsules, load_robot_file
 from larc_jax.errors import LarcInputError
-from larc_jax.manifest import iter_manifest
-from larc_jax.scene import read_scene
-from larc_jax.trajectory_files import read_trajectory
-from larc_jax.verify import verify_certificate
+from larc_jax.drivers.manifest import iter_manifest
+from larc_jax.model.scene import read_scene
+from larc_jax.model.trajectory_files import read_trajectory
+from larc_jax.products.verify import verify_certificate
 
 ROOT = Path(__file__).resolve().parent.parent
 EX = ROOT / "configs" / "examples"
@@ -71,7 +71,7 @@ def test_typo_scene_is_refused_by_larc_certify(tmp_path):
     was CERTIFIED. Now exit 2, one line, naming the key and the file; before any JAX work."""
     path = tmp_path / "typo.yaml"
     path.write_text(TYPO)
-    proc = subprocess.run([sys.executable, "-m", "larc_jax.cli", "certify", str(SWEEP), "--scene", str(path)],
+    proc = subprocess.run([sys.executable, "-m", "larc_jax.drivers.cli", "certify", str(SWEEP), "--scene", str(path)],
                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert "CERTIFIED" not in proc.stdout
@@ -119,7 +119,7 @@ def test_trajectory_ignored_fields_are_documented_and_read(tmp_path):
     path = tmp_path / "display.yaml"
     path.write_text(yaml.safe_dump(doc))
     assert read_trajectory(path).n_waypoints == 3
-    import larc_jax.trajectory_files as tf
+    import larc_jax.model.trajectory_files as tf
 
     for key in ("header", "accelerations", "effort", "model_id", "trajectory_start"):
         assert f"``{key}``" in tf.__doc__

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 import yaml
 
-from larc_jax.certificate import certificate, hexf, scene_sha256
-from larc_jax.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
+from larc_jax.products.certificate import certificate, hexf, scene_sha256
+from larc_jax.drivers.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
 from larc_jax.errors import LarcInputError
-from larc_jax.urdf import file_sha256
-from larc_jax.verify import Refuted, VerifyPins, verify_certificate
+from larc_jax.model.urdf import file_sha256
+from larc_jax.products.verify import Refuted, VerifyPins, verify_certificate
 from larc_jax.run_spec import RunSpec
-from larc_jax.verify_report import report_lines
+from larc_jax.products.verify_report import report_lines
 
 ROOT = Path(__file__).resolve().parent.parent
 EX = ROOT / "configs" / "examples"
@@ -79,8 +79,8 @@ def _cert(made, tmp_path, keep, edit=None) -> Path:
 def test_the_forged_file_really_swings_through_the_post(made, robot):
     """The claim the forgery would carry is false: the motion the file describes puts the finger
     frames inside the post; its finite-difference reading stands still."""
-    from larc_jax.hermite import evaluate_np
-    from larc_jax.robot import forward_kinematics_np
+    from larc_jax.model.hermite import evaluate_np
+    from larc_jax.model.robot import forward_kinematics_np
     import larc_jax as lj
 
     rec = lj.read_trajectory(made["overshoot"], robot)
@@ -122,7 +122,7 @@ def test_finite_difference_of_a_file_without_velocities_verifies(made, tmp_path)
 
 
 def test_reading_finite_difference_warns_that_verify_refuses(made, robot, caplog):
-    from larc_jax.trajectory_files import read_trajectory_file
+    from larc_jax.model.trajectory_files import read_trajectory_file
 
     with caplog.at_level(logging.WARNING):
         traj, ignored = read_trajectory_file(made["overshoot"], robot, velocities="finite-difference")
@@ -245,7 +245,7 @@ def test_pins_on_self_collision_and_tracking_tolerance(robot):
     with pytest.raises(Refuted, match="pin --no-self-skip: .*link1:link4"):
         VerifyPins(no_self_skip=True).check_parameters(p)
     delta = np.full(robot.n_joints, 0.002)
-    from larc_jax.verify_report import InputFile, RobotFacts
+    from larc_jax.products.verify_report import InputFile, RobotFacts
 
     facts = RobotFacts(file=InputFile("r.yaml", "supplied", "0" * 64, None), urdf="u", urdf_sha256="0", geometry=(),
                        active_joints=(), held_joints=(), capsules=0, excluded_links=())

@@ -26,14 +26,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import larc_jax.verify as verify_module
-from larc_jax.certificate import hexf, scene_sha256
-from larc_jax.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
+import larc_jax.products.verify as verify_module
+from larc_jax.products.certificate import hexf, scene_sha256
+from larc_jax.drivers.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
 from larc_jax.enclosure import default_capsule_path
 from larc_jax.errors import LarcInputError
-from larc_jax.interval import dyadic_ends
-from larc_jax.scene import read_scene
-from larc_jax.verify import Refuted, verify_certificate
+from larc_jax.leaf.interval import dyadic_ends
+from larc_jax.model.scene import read_scene
+from larc_jax.products.verify import Refuted, verify_certificate
 
 from .verify_oracle import Unreadable, cached_robot_load, claim_holds, implied, read_claim
 
@@ -446,7 +446,7 @@ def test_cli_exit_codes_on_mutants(bases, tmp_path, capsys):
     huge["trajectories"][0]["leaves"]["index"][0] = 2**63
     (d / "huge.json").write_text(json.dumps(huge))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    procs = [subprocess.Popen([sys.executable, "-m", "larc_jax.cli", "verify", str(d / f)], env=env, text=True,
+    procs = [subprocess.Popen([sys.executable, "-m", "larc_jax.drivers.cli", "verify", str(d / f)], env=env, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE) for f in ("overflow.json", "huge.json")]
     for proc in procs:
         out, err = proc.communicate(timeout=120)

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 import yaml
 
-import larc_jax.verify as verify_mod
-from larc_jax.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
+import larc_jax.products.verify as verify_mod
+from larc_jax.drivers.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_REFUTED, main
 from larc_jax.enclosure import proof
 from larc_jax.enclosure.hull import hull_model
 from larc_jax.enclosure.proof import EnclosureNotProven, HullPartTest, prove_enclosures
 from larc_jax.enclosure.robot_file import default_capsule_path, load_robot_file
-from larc_jax.verify import Refuted, verify_certificate
+from larc_jax.products.verify import Refuted, verify_certificate
 
 ROOT = Path(__file__).resolve().parent.parent
 EX = ROOT / "configs" / "examples"

@@ -18,12 +18,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from larc_jax.certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION
+from larc_jax.products.certificate import CERTIFICATE_FORMAT, CERTIFICATE_VERSION
 from larc_jax.enclosure.robot_file import default_capsule_path
 from larc_jax.errors import LarcInputError
 from larc_jax.run_spec import RunSpec
-from larc_jax.verify import Refuted, verify_certificate
-from larc_jax.verify_report import report_lines
+from larc_jax.products.verify import Refuted, verify_certificate
+from larc_jax.products.verify_report import report_lines
 
 
 def _bare_certificate(tmp_path: Path, **parameters) -> Path:

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from larc_jax.cli import EXIT_OK, main
-from larc_jax.geometry import segment_box_distance_np
-from larc_jax.view_data import (STAGE_COLOURS, leaf_detail, link_meshes, read_view_certificate, read_view_files,
+from larc_jax.drivers.cli import EXIT_OK, main
+from larc_jax.obstacles.geometry import segment_box_distance_np
+from larc_jax.products.view_data import (STAGE_COLOURS, leaf_detail, link_meshes, read_view_certificate, read_view_files,
                                 timeline_image)
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,7 +49,7 @@ def cert(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def viewer(cert):
-    from larc_jax.view import view
+    from larc_jax.products.view import view
 
     v = view(cert[0], port=_free_port(), block=False)
     yield v
@@ -105,7 +105,7 @@ def test_leaf_detail_closest_points_are_the_recorded_pair(viewer):
 
 
 def test_self_pair_and_hull_parts(viewer):
-    from larc_jax.self_collision import segment_segment_distance_np
+    from larc_jax.leaf.self_collision import segment_segment_distance_np
 
     data = viewer.data
     it = data.items[0]
@@ -128,9 +128,9 @@ def test_self_pair_and_hull_parts(viewer):
 
 
 def test_view_never_imports_jax(cert):
-    code = ("import sys; from larc_jax.view_data import read_view_certificate, leaf_detail; "
+    code = ("import sys; from larc_jax.products.view_data import read_view_certificate, leaf_detail; "
             f"d = read_view_certificate({str(cert[0])!r}); leaf_detail(d, d.items[1], 0); "
-            "import larc_jax.view; assert 'jax' not in sys.modules, 'jax imported'")
+            "import larc_jax.products.view; assert 'jax' not in sys.modules, 'jax imported'")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
@@ -146,7 +146,7 @@ def test_timeline_colours(viewer):
 
 def test_cli_prints_the_url_and_stops_on_ctrl_c(cert):
     port = _free_port()
-    p = subprocess.Popen([sys.executable, "-m", "larc_jax.cli", "view", str(cert[0]), "--port", str(port)],
+    p = subprocess.Popen([sys.executable, "-m", "larc_jax.drivers.cli", "view", str(cert[0]), "--port", str(port)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = ""
@@ -182,7 +182,7 @@ def test_browser_shows_the_robot_and_the_boxes(viewer, tmp_path):
     served whole by viser."""
     from PIL import Image
 
-    from larc_jax.view import BOX_RGB, ROBOT_RGB
+    from larc_jax.products.view import BOX_RGB, ROBOT_RGB
 
     viewer.show_trajectory(0)
     w, h = 1280, 800

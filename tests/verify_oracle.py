@@ -1,5 +1,5 @@
 """The fuzz test's oracle (``tests/test_verify_fuzz.py``): its own strict reading of a
-certificate's claim (:func:`read_claim`, independent of ``larc_jax.verify``'s parsing), and two
+certificate's claim (:func:`read_claim`, independent of ``larc_jax.products.verify``'s parsing), and two
 ways to accept a claim: :func:`implied` by a claim known true (the original certificate's), or
 :func:`claim_holds`, re-proved from the files it names with the NumPy leaf test."""
 
@@ -15,11 +15,11 @@ import numpy as np
 
 from larc_jax.enclosure.robot_file import load_robot_file
 from larc_jax.errors import GeometryChanged, LarcInputError
-from larc_jax.interval import trajectory_rounding
-from larc_jax.leaf_reference import leaf_enclosures, leaf_test_np
-from larc_jax.scene import read_scene
-from larc_jax.self_collision import curve_ranges, load_separation, self_pairs
-from larc_jax.trajectory_files import read_trajectory
+from larc_jax.leaf.interval import trajectory_rounding
+from larc_jax.leaf.reference import leaf_enclosures, leaf_test_np
+from larc_jax.model.scene import read_scene
+from larc_jax.leaf.self_collision import curve_ranges, load_separation, self_pairs
+from larc_jax.model.trajectory_files import read_trajectory
 
 _ROBOTS: dict = {}
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import LarcInputError
 from ..lazy_jax import jax, jnp, pytree_dataclass
-from ..robot import Robot, forward_kinematics, forward_kinematics_np
+from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["CapsuleModel", "capsule_segments", "capsule_segments_np"]
 
@@ -108,7 +108,7 @@ def capsule_segments(robot: Robot, capsules: CapsuleModel, q: jax.Array):
     T_world_link = forward_kinematics(robot, q)
     T = T_world_link[jnp.asarray(capsules.link_index)]  # (C, 4, 4)
     R, t = T[:, :3, :3], T[:, :3, 3]
-    # Full precision: float32 products on GPUs default to TF32 (see larc_jax.interval, G1).
+    # Full precision: float32 products on GPUs default to TF32 (see larc_jax.leaf.interval, G1).
     full = jax.lax.Precision.HIGHEST
     a = jnp.einsum("cij,cj->ci", R, capsules.p_link_a.astype(R.dtype), precision=full) + t
     b = jnp.einsum("cij,cj->ci", R, capsules.p_link_b.astype(R.dtype), precision=full) + t

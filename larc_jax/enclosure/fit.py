@@ -26,7 +26,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import LarcInputError
-from ..robot import Robot
+from ..model.robot import Robot
 from .capsule import CapsuleModel
 from .meshes import link_elements, stroke_shifts
 

@@ -20,7 +20,7 @@ from typing import Callable, Mapping, Sequence
 
 from ..defaults import DEFAULT_PADDING_M
 from ..errors import LarcInputError
-from ..robot import Robot
+from ..model.robot import Robot
 from .capsule import CapsuleModel
 from .fit import FittedCapsule, fit_capsules, fit_stated_capsules, verify_containment
 from .hull import choose_hull_parts
@@ -86,7 +86,7 @@ def fit_robot_file(
     Args:
       package_dirs: ``{package name: folder}`` for ``package://`` URIs.
       active_joints: the joints trajectories carry (default: the trunk chain, as
-        :func:`~larc_jax.urdf.load_robot` chooses).
+        :func:`~larc_jax.model.urdf.load_robot` chooses).
       held_joint_values: value at which a non-active joint is held; a held prismatic joint's
         links are fitted over its whole stroke (and alone, for a stated opening).
       n_capsules, capsules_per_link: how many capsules (:func:`~.fit.fit_capsules`).
@@ -98,7 +98,7 @@ def fit_robot_file(
 
     Raises :class:`LarcInputError` for bad input (named) or a failed proof.
     """
-    from ..urdf import load_robot
+    from ..model.urdf import load_robot
 
     padding_m = check_padding(padding_m)
     output = Path(output)

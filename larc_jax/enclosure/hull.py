@@ -1,6 +1,6 @@
 """Convex-hull enclosures of the links ("parts"), their containment proof and motion constants.
 
-The hull stage of the certificate (:mod:`larc_jax.cascade`) encloses each link's collision
+The hull stage of the certificate (:mod:`larc_jax.leaf.cascade`) encloses each link's collision
 geometry by the convex hulls of one or two *parts*, each padded like the capsules
 (``padding_m``, 1 mm): a part is ``conv(V) + B(0, radius)`` with ``V`` its vertex table in the
 link frame. A hull is the tightest convex enclosure of a part, so a link that clears a box
@@ -50,7 +50,7 @@ import numpy as np
 
 from ..errors import LarcInputError
 from ..lazy_jax import jax, pytree_dataclass
-from ..robot import Robot
+from ..model.robot import Robot
 from .meshes import link_elements, robot_urdf_model
 from .motion import motion_constants_points
 
@@ -306,7 +306,7 @@ def build_hulls(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float
 
 def _geometry_stamps(robot: Robot) -> tuple:
     """File stamps of the URDF and every collision mesh (a changed file rebuilds the hulls)."""
-    from ..urdf import resolve_uri
+    from ..model.urdf import resolve_uri
 
     def stamp(path) -> tuple:
         try:

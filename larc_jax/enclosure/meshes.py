@@ -13,7 +13,7 @@ primitive): :func:`link_elements`. A convex enclosure holds an element iff it ho
 its vertices, which is what the containment proof (:mod:`larc_jax.enclosure.fit`) checks.
 
 Finger stroke. For a link below a held prismatic joint whose value is not stated
-(:attr:`~larc_jax.robot.Robot.stroke_joints`, e.g. PIPER's fingers without ``--hold``), every
+(:attr:`~larc_jax.model.robot.Robot.stroke_joints`, e.g. PIPER's fingers without ``--hold``), every
 element also carries its copies shifted to both ends of the joint's stroke (relative to the
 held reference value at which FK places the link). A prismatic stroke sweeps the element along
 a segment, and the convex hull of the two end copies contains that sweep, so a convex enclosure
@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LarcInputError
-from ..robot import JointType, Robot
-from ..urdf import file_sha256, load_urdf_model, resolve_uri
+from ..model.robot import JointType, Robot
+from ..model.urdf import file_sha256, load_urdf_model, resolve_uri
 
 __all__ = ["link_elements", "link_collisions", "stroke_shifts", "held_joint_states", "robot_urdf_model",
            "joint_limits", "collision_geometry", "links_with_geometry"]

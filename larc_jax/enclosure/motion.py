@@ -53,7 +53,7 @@ from typing import Sequence
 import numpy as np
 
 from ..defaults import POSITION_TOLERANCE
-from ..robot import JointType, Robot
+from ..model.robot import JointType, Robot
 
 __all__ = ["motion_constants", "motion_constants_points"]
 

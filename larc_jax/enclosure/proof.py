@@ -63,7 +63,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import LarcInputError
-from ..robot import Robot
+from ..model.robot import Robot
 from .capsule import CapsuleModel
 from .fit import inside_capsule, point_segment_distance
 from .hull import HullModel, build_parts, hull_model
@@ -316,7 +316,7 @@ def prove_enclosures(robot: Robot, capsules: CapsuleModel, hull: bool, *, source
     """Prove every enclosure a run with ``capsules`` uses (module docstring): the capsules (the
     stated-finger ones where the robot states the finger joints: the loader chose them) and,
     with ``hull``, the hull parts the cascade builds from the robot file's split planes, which
-    are returned (give them to :func:`~larc_jax.leaf_reference.leaf_enclosures`: the parts
+    are returned (give them to :func:`~larc_jax.leaf.reference.leaf_enclosures`: the parts
     used are the parts proven). Raises :class:`EnclosureNotProven`."""
     hulls = hull_model(robot, capsules.hull_parts, capsules.padding_m).on_links(capsules.link_names) if hull else None
     _prove_model(robot, capsules, _model_parts(hulls) if hull else None, source, progress)

@@ -41,7 +41,7 @@ import yaml
 
 from ..errors import GeometryChanged, LarcInputError
 from ..io import atomic_write_text, check_keys, parse_number, parse_vector, parse_yaml, read_input_text, short_repr
-from ..robot import JointType, Robot
+from ..model.robot import JointType, Robot
 from .capsule import CapsuleModel
 from .fit import FittedCapsule
 from .meshes import collision_geometry, links_with_geometry, stroke_shifts
@@ -344,7 +344,7 @@ def load_robot_file(path: str | Path | None = None, hold: Mapping[str, float] | 
     ``active_joints``: the joints a trajectory carries, if not the file's (``larc certify
     --joints``): the file's active joints plus some it holds, e.g. the fingers.
     """
-    from ..urdf import load_robot
+    from ..model.urdf import load_robot
 
     hold = _check_hold(hold)
     if path is None:

@@ -1,0 +1,1 @@
+"""Long runs and the command line: streams, manifests, Dask, ``larc``."""

@@ -1,0 +1,1 @@
+"""Schedulers: many leaves, trajectories and devices at once; the results they produce."""

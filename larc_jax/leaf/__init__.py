@@ -1,0 +1,1 @@
+"""One leaf (time interval) of the certificate tree: placement, the stages, their composition."""

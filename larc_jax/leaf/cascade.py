@@ -1,0 +1,260 @@
+"""The enclosure cascade: the capsule test first, the convex-hull test on what it leaves open.
+
+An interval passes the cascade when, for every link ``l`` and box ``k``, *either* all of the
+link's capsules clear the box (paper eq. 7) *or* all of its hull parts
+(:mod:`larc_jax.enclosure.hull`) do: each of the two unions contains the link's geometry, so
+either proof shows the link more than rho from the box on the whole interval. The hull test
+of one part against one box is::
+
+    g_h = lb(part at q(t_m), box) - (radius_p + b_p(I) + rho) (1 + 2 eps)
+
+with ``lb`` the proven lower bound of :func:`larc_jax.obstacles.polytope.polytope_box_lower_bound` (its
+own rounding already subtracted), ``radius_p`` the padding (plus the containment slack) and
+``b_p(I) = h_cov * sum_j a_pj * (omega_max_j(I) + slack_j)`` the part's motion radius from its
+own motion constants (eq. 6, budget P3 of :mod:`larc_jax.leaf.interval`). The part is placed at the
+same midpoint ``q(t_m)``, with the same covering radius and speed bound, as the capsules: both
+stages read them from one :class:`~larc_jax.leaf.interval.IntervalEval`, so the hull stage inherits
+the capsule stage's time handling (budget T). A part passes a box when ``g_h > G_p``, ``G_p``
+the part's rounding guard (``RoundingBounds.hull_guard_m``: the capsule guard's formula with
+the part's chain, vertices and motion constants, budget G1 and P3).
+
+Every comparison below is of an *excess* ``g - G`` (capsule ``g_lk - G_l``, part ``g_h - G_p``):
+``fl(g - G) > 0`` iff ``g > G``, so a leaf records the ``(g, G)`` of the enclosure that decided
+it, and passes iff ``g > G``.
+
+Order of work (all of it deterministic, so every scheduler takes the same decisions):
+
+1. the capsule test on every interval (:mod:`larc_jax.leaf.interval`); intervals with
+   ``g > guard`` pass ("capsule" stage); NaN fails;
+2. for the others, one compacted call (:func:`interval_pairs`) gives every capsule-box
+   clearance, the parts' link poses and motion radii, and for each part-box pair an *upper*
+   bound of its hull clearance from 14 of its vertices (a point of the part is at least as far
+   as the part);
+3. a (link, box) pair is sent to the hull test when its capsules fail (excess ``<= 0``) and
+   every one of its parts could still pass (upper bound above its guard): otherwise the hull
+   test could not change the outcome, and is skipped (skipping never certifies);
+4. one compacted call on those (interval, part, box) triples (:func:`hull_pair_clearance`);
+5. per (l, k) the excess is ``max(min_capsules, min_parts)`` (parts only where tested); the
+   interval's is the minimum over (l, k); it passes ("hull" stage) when that is > 0.
+
+:func:`combine` is step 5 (NumPy, shared by every scheduler); :func:`cascade_np` runs steps 1-5
+on one interval with the NumPy float64 references (:func:`interval_pairs_np`,
+:func:`~larc_jax.obstacles.polytope.polytope_box_lower_bound_np`) for the reference scheduler.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..enclosure.capsule import CapsuleModel
+from ..enclosure.hull import HullModel
+from .interval import evaluate_interval, evaluate_interval_np, motion_radii
+from ..lazy_jax import jax, jnp, pytree_dataclass
+from ..obstacles.polytope import polytope_box_lower_bound, polytope_box_lower_bound_np
+from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
+
+__all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
+           "hull_pair_clearance_np", "Links", "select_pairs", "combine", "cascade_np"]
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class PairDetails:
+    """What step 2 computes on one interval (JAX or NumPy arrays)."""
+
+    g_capsule: jax.Array
+    """(C, B) capsule-box clearances ``g_lk`` (eq. 7 as computed by the capsule stage), m;
+    +inf for padding boxes."""
+    T_part: jax.Array
+    """(P, 3, 4) pose of each part's link at q(t_m): rotation | translation."""
+    motion_b: jax.Array
+    """(P,) motion radius of each part (P3), m."""
+    g_upper: jax.Array
+    """(P, B) upper bound of each part-box hull clearance, m; +inf for padding boxes."""
+
+
+def _point_box_distance(p, lo, hi):
+    gap = jnp.maximum(jnp.maximum(lo - p, p - hi), 0)
+    return jnp.sqrt(jnp.sum(gap * gap, axis=-1))
+
+
+def _shell(radius, motion_b, margin, eps):
+    """``(r + b + rho) (1 + 2 eps)``: an upper bound of the sum (budget G4)."""
+    return (radius + motion_b + margin) * (1 + 2 * eps)
+
+
+def interval_pairs(robot: Robot, capsules: CapsuleModel, hulls: HullModel, spline, box_lo, box_hi, box_mask,
+                   a, b, margin, bounds) -> PairDetails:
+    """Step 2 on one interval ``[a, b]`` (rebased) of one trajectory (kernel; batch with ``jax.vmap``)."""
+    ev = evaluate_interval(robot, capsules, spline, box_lo, box_hi, box_mask, a, b, margin, bounds)
+    eps = float(jnp.finfo(ev.speed.dtype).eps)
+    gdtype = robot.T_parent_joint.dtype
+    T = forward_kinematics(robot, ev.q_mid.astype(gdtype))[jnp.asarray(hulls.link_index)][:, :3, :]  # (P, 3, 4)
+    motion_b = motion_radii(hulls.motion_a, ev.h_cov, ev.speed)  # eq. 6, the parts' own a_pj
+    probes = jnp.einsum("pij,pqj->pqi", T[:, :, :3], hulls.probes.astype(gdtype)) + T[:, None, :, 3]
+    d = _point_box_distance(probes[:, :, None, :], box_lo[None, None], box_hi[None, None])  # (P, Q, B)
+    # An upper bound, used only to skip pairs that cannot pass: no rounding care needed.
+    g_upper = d.min(axis=1).astype(motion_b.dtype) - _shell(hulls.radius, motion_b, margin, eps)[:, None]
+    g_upper = jnp.where(box_mask[None, :], g_upper, jnp.inf)
+    return PairDetails(g_capsule=ev.g_pairs, T_part=T, motion_b=motion_b, g_upper=g_upper)
+
+
+def hull_pair_clearance(hulls: HullModel, part, T_part, lo, hi, motion_b, margin) -> jax.Array:
+    """Step 4 on one (part, box) pair: ``g_h`` of the module docstring (kernel; ``vmap`` it).
+
+    Args:
+      part: index of the part; T_part: (3, 4) its link's pose at q(t_m) (geometry dtype); lo,
+        hi: (3,) the box; motion_b: the part's motion radius b_p(I), m (float64); margin: rho, m.
+    """
+    eps = float(jnp.finfo(motion_b.dtype).eps)
+    lb = polytope_box_lower_bound(hulls.vertices, part, hulls.centre[part], T_part[:, :3], T_part[:, 3], lo, hi)
+    return lb.astype(motion_b.dtype) - _shell(hulls.radius[part], motion_b, margin, eps)
+
+
+# ----------------------------------------------------------------------------------------------
+# NumPy float64 references
+# ----------------------------------------------------------------------------------------------
+
+
+def interval_pairs_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, traj, scene, a: float, b: float,
+                      margin: float, bounds, ev=None) -> PairDetails:
+    """NumPy float64 reference of :func:`interval_pairs` on the leaf ``[a, b]`` in the
+    trajectory's own time axis (``traj``: a Trajectory, ``scene``: a Scene, ``bounds``:
+    :func:`~larc_jax.leaf.interval.trajectory_rounding`; ``ev``: the leaf's
+    :func:`~larc_jax.leaf.interval.evaluate_interval_np`, if computed)."""
+    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bounds)
+    eps = float(np.finfo(np.float64).eps)
+    T_all = forward_kinematics_np(robot, ev.q_mid)
+    T = np.stack([T_all[li][:3, :] for li in hulls.link_index])
+    motion_b = motion_radii(np.asarray(hulls.motion_a, np.float64), ev.h_cov, np.asarray(ev.speed, np.float64))
+    U = np.full((hulls.n_parts, max(scene.n_boxes, 1)), np.inf)
+    probes = np.asarray(hulls.probes, np.float64)
+    radius = np.asarray(hulls.radius, np.float64)
+    for p in range(hulls.n_parts):
+        world = probes[p] @ T[p, :, :3].T + T[p, :, 3]
+        for k in range(scene.n_boxes):
+            gap = np.maximum(np.maximum(scene.lo[k] - world, world - scene.hi[k]), 0)
+            U[p, k] = np.sqrt((gap * gap).sum(axis=1)).min() - _shell(radius[p], motion_b[p], margin, eps)
+    return PairDetails(g_capsule=np.asarray(ev.g_pairs, np.float64), T_part=T, motion_b=motion_b, g_upper=U)
+
+
+def hull_pair_clearance_np(hulls: HullModel, part: int, T_part, lo, hi, motion_b: float, margin: float) -> float:
+    """NumPy float64 reference of :func:`hull_pair_clearance`."""
+    eps = float(np.finfo(np.float64).eps)
+    V = np.asarray(hulls.vertices[part], np.float64)
+    T_part = np.asarray(T_part, np.float64)
+    lb = polytope_box_lower_bound_np(V, np.asarray(hulls.centre[part]), T_part[:, :3], T_part[:, 3], lo, hi)
+    return lb - _shell(float(hulls.radius[part]), motion_b, margin, eps)
+
+
+# ----------------------------------------------------------------------------------------------
+# Steps 3 and 5 (host side, NumPy; shared by every scheduler)
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Links:
+    """Which link each capsule and each part belongs to (links numbered 0..L-1)."""
+
+    of_capsule: np.ndarray
+    """(C,) link number of each capsule."""
+    of_part: np.ndarray
+    """(P,) link number of each part."""
+    n_links: int
+
+    @staticmethod
+    def of(capsules: CapsuleModel, hulls: HullModel) -> "Links":
+        links = list(dict.fromkeys(capsules.link_names))
+        missing = sorted(set(hulls.link_names) ^ set(links))
+        if missing:
+            from ..errors import LarcInputError
+
+            raise LarcInputError(f"capsules and hull parts cover different links: {missing}")
+        return Links(np.array([links.index(l) for l in capsules.link_names]),
+                     np.array([links.index(l) for l in hulls.link_names]), len(links))
+
+    def reduce_min(self, values: np.ndarray, owner: np.ndarray) -> np.ndarray:
+        """(..., E, B) values per capsule or part -> (..., L, B) minimum per link."""
+        out = np.full(values.shape[:-2] + (self.n_links, values.shape[-1]), np.inf)
+        for e, l in enumerate(owner):
+            out[..., l, :] = np.minimum(out[..., l, :], values[..., e, :])  # NaN propagates
+        return out
+
+
+def select_pairs(links: Links, cap_excess: np.ndarray, upper_excess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3. ``cap_excess`` (F, C, B) = ``g_lk - G_l``, ``upper_excess`` (F, P, B) = hull
+    upper bound ``- G_p``.
+
+    Returns ``tried`` (F, L, B), the (interval, link, box) pairs sent to the hull test, and the
+    triples ``(interval, part, box)`` (T, 3) to evaluate (every part of every tried link)."""
+    cap = links.reduce_min(cap_excess, links.of_capsule)
+    upper = links.reduce_min(upper_excess, links.of_part)
+    tried = ~(cap > 0) & (upper > 0) & ~np.isnan(cap)
+    i, l, k = np.nonzero(tried)
+    triples = [np.stack([i[links.of_part[p] == l], np.full(np.sum(links.of_part[p] == l), p),
+                         k[links.of_part[p] == l]], axis=1) for p in range(len(links.of_part))]
+    triples = np.concatenate(triples) if triples else np.zeros((0, 3), np.int64)
+    order = np.lexsort((triples[:, 2], triples[:, 1], triples[:, 0]))
+    return tried, triples[order].astype(np.int64)
+
+
+def combine(links: Links, g_capsule: np.ndarray, guard_capsule: np.ndarray, tried: np.ndarray,
+            triples: np.ndarray, g_hull: np.ndarray, guard_hull: np.ndarray):
+    """Step 5: per interval ``(g, guard, capsule, box, passed)`` from the capsule clearances
+    ``g_capsule`` (F, C, B) and guards ``guard_capsule`` (F, C), the tried pairs, and the hull
+    clearances ``g_hull`` (T,) and guards ``guard_hull`` (T,) of the triples.
+
+    The recorded ``(g, guard)`` are those of the enclosure deciding the worst (link, box) pair
+    (``passed == g > guard``); ``capsule`` is the capsule of the blocking link with the least
+    excess against the blocking box."""
+    F, C, B = g_capsule.shape
+    cap_ex = g_capsule - guard_capsule[:, :, None]
+    cap = links.reduce_min(cap_ex, links.of_capsule)  # (F, L, B)
+    hull = np.full(cap.shape, np.inf)
+    if len(triples):
+        i, p, k = triples.T
+        np.minimum.at(hull, (i, links.of_part[p], k), g_hull - guard_hull)  # a NaN propagates
+    use_hull = tried & (hull > cap)
+    value = np.where(use_hull, hull, cap)
+    value = np.where(tried & (np.isnan(hull) | np.isnan(cap)), np.nan, value)
+    flat = value.reshape(F, -1)
+    nan = np.isnan(flat).any(axis=1)
+    best = np.argmin(np.where(np.isnan(flat), -np.inf, flat), axis=1)
+    link, box = best // B, best % B
+    rows = np.arange(F)
+    on_link = links.of_capsule[None, :] == link[:, None]  # (F, C)
+    capsule = np.argmin(np.where(on_link, cap_ex[rows, :, box], np.inf), axis=1)
+    g = g_capsule[rows, capsule, box].astype(np.float64)
+    guard = guard_capsule[rows, capsule].astype(np.float64)
+    hull_won = use_hull.reshape(F, -1)[rows, best]
+    if hull_won.any() and len(triples):
+        # The deciding part: the one with the least excess on that (interval, link, box).
+        i, p, k = triples.T
+        ex = g_hull - guard_hull
+        for f in np.flatnonzero(hull_won):
+            sel = np.flatnonzero((i == f) & (links.of_part[p] == link[f]) & (k == box[f]))
+            t = sel[np.argmin(ex[sel])]
+            g[f], guard[f] = g_hull[t], guard_hull[t]
+    g = np.where(nan, np.nan, g)
+    return g, guard, capsule, box, g > guard
+
+
+def cascade_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, links: Links, traj, scene, a: float,
+               b: float, margin: float, bounds, ev=None):
+    """Steps 1-5 on one leaf ``[a, b]`` (the trajectory's own time axis) with the NumPy
+    references: ``(g, guard, capsule, box, stage)``; ``ev``: the leaf's capsule test
+    (:func:`~larc_jax.leaf.interval.evaluate_interval_np`), computed if None."""
+    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bounds)
+    if ev.g > ev.guard or math.isnan(ev.g):
+        return ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard)
+    d = interval_pairs_np(robot, capsules, hulls, traj, scene, a, b, margin, bounds, ev)
+    G_c = np.asarray(bounds.guard_m, np.float64)
+    G_p = np.asarray(bounds.hull_guard_m, np.float64)
+    tried, triples = select_pairs(links, (d.g_capsule - G_c[:, None])[None], (d.g_upper - G_p[:, None])[None])
+    g_hull = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], scene.lo[k], scene.hi[k], d.motion_b[p], margin)
+                       for _, p, k in triples])
+    g, guard, c, bx, passed = combine(links, d.g_capsule[None], G_c[None], tried, triples, g_hull,
+                                      G_p[triples[:, 1]] if len(triples) else np.zeros(0))
+    return float(g[0]), float(guard[0]), int(c[0]), int(bx[0]), 2 if passed[0] else 0

@@ -1,0 +1,472 @@
+"""Piecewise-cubic Hermite trajectories and their exact joint-speed maxima.
+
+A joint trajectory (as MoveIt records it) is ``K+1`` waypoints with strictly increasing times
+``t_0 < ... < t_K`` (s), positions ``q_k`` (n joints; rad for revolute, m for prismatic joints)
+and velocities ``v_k`` (rad/s or m/s). It is reconstructed as a piecewise-cubic Hermite curve:
+on segment ``k`` (``t_k <= t <= t_{k+1}``), with ``h_k = t_{k+1} - t_k`` and
+``s = (t - t_k) / h_k`` in [0, 1],
+
+    q(s) = H00(s) q_k + H10(s) h_k v_k + H01(s) q_{k+1} + H11(s) h_k v_{k+1},
+
+    H00 = (1 + 2s)(1 - s)^2,   H10 = s (1 - s)^2,   H01 = s^2 (3 - 2s),   H11 = s^2 (s - 1).
+
+Differentiating, with the chord slope ``d_k = (q_{k+1} - q_k) / h_k``,
+
+    qdot(s) = (1 - s)(1 - 3s) v_k + s (3s - 2) v_{k+1} + 6 s (1 - s) d_k          (*)
+            = c0 + c1 s + c2 s^2,
+    c0 = v_k,   c1 = 6 d_k - 4 v_k - 2 v_{k+1},   c2 = 3 v_k + 3 v_{k+1} - 6 d_k.
+
+Exactness argument (paper eq. 5). On each segment every component ``qdot_j`` is a polynomial
+of degree <= 2 in ``s``. The maximum of ``|p|`` over a closed sub-range ``[s0, s1]`` of a
+quadratic ``p`` is attained either at an end of the sub-range or at a critical point of ``p``
+inside it; ``p`` has at most one critical point, the vertex ``s* = -c1 / (2 c2)`` (none when
+``c2 = 0``). Hence
+
+    max_{s in [s0, s1]} |qdot_j(s)| = max(|p(s0)|, |p(s1)|, |p(clip(s*, s0, s1))|)
+
+*exactly* (the clipped vertex is a point of the sub-range, so it can never over-estimate; when
+the vertex lies inside it is the true candidate). For an interval ``I = [a, b]`` the maximum
+over ``I`` is the maximum over the segments that ``I`` touches, each restricted to its part of
+``I``: the first and last touched segments are evaluated on their clipped sub-ranges, and every
+segment fully covered by ``I`` contributes its whole-segment maximum, which is precomputed in a
+sparse table (range-maximum query, O(1) per query). The only error is floating-point rounding
+in evaluating (*); no safety margin is added here (the certifier adds its own documented
+rounding guard).
+
+Form (*) is used for evaluation because it is exact at the knots: at ``s = 0`` it returns
+``v_k`` and at ``s = 1`` it returns ``v_{k+1}`` bit-for-bit, so both segments adjacent to a
+knot give the same velocity there. The power-form coefficients are used only to locate the
+vertex (an error in ``s*`` changes ``p(s*)`` only to second order since ``p'(s*) = 0``).
+
+Batches. :func:`pad_waypoints` appends extra knots after ``t_K`` (at ``t_K + 1, t_K + 2, ...``,
+position repeated, zero velocity) so that trajectories with different ``K`` share one array
+shape; no interval inside the original ``[t_0, t_K]`` ever touches a padding segment. A batch
+of splines is a :class:`HermiteSpline` whose arrays carry a leading batch axis, built with
+``jax.vmap(HermiteSpline.from_waypoints)`` on stacked padded arrays (see
+:func:`batch_from_waypoints`); the single-item kernels :func:`evaluate`, :func:`speed_max` are
+then mapped with ``jax.vmap``.
+
+All JAX functions are pure ``jnp``, jit- and vmap-able, dtype-polymorphic (float32 in gives
+float32 out, float64 in gives float64 out under ``jax.enable_x64``) and never flip global JAX
+configuration. :func:`evaluate_np` and :func:`speed_max_np` are independent float64 NumPy
+references (power form in ``t - t_k``, plain loops).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import LarcInputError
+from ..lazy_jax import jax, jnp, pytree_dataclass
+
+__all__ = [
+    "HermiteSpline",
+    "SplineRow",
+    "num_table_levels",
+    "pad_waypoints",
+    "batch_from_waypoints",
+    "evaluate",
+    "segment_speed_max",
+    "speed_max",
+    "evaluate_np",
+    "speed_max_np",
+]
+
+
+def num_table_levels(num_segments: int) -> int:
+    """Number of sparse-table levels for ``K`` segments: ``max(1, ceil(log2 K) + 1)``."""
+    K = int(num_segments)
+    if K < 1:
+        raise ValueError(f"need at least one segment, got K={K}")
+    return max(1, (K - 1).bit_length() + 1)  # (K-1).bit_length() == ceil(log2 K) for K >= 1
+
+
+# ------------------------------------------------------------------------------------------
+# Single-segment kernel (paper eq. 5)
+# ------------------------------------------------------------------------------------------
+
+
+def _segment_velocity(v0, v1, d, s):
+    """Velocity (*) at normalised time ``s``; exact at ``s = 0`` (-> v0) and ``s = 1`` (-> v1)."""
+    one = jnp.ones_like(s)
+    return (one - s) * (one - 3 * s) * v0 + s * (3 * s - 2 * one) * v1 + 6 * s * (one - s) * d
+
+
+def segment_speed_max(q0, v0, q1, v1, h, s0, s1):
+    """Exact ``max_{s in [s0, s1]} |qdot_j(s)|`` on one Hermite segment (paper eq. 5).
+
+    Args (all broadcast against each other; typically ``q0, v0, q1, v1`` are ``(n,)`` and
+    ``h, s0, s1`` are scalars):
+      q0, q1: positions at the segment's start/end knot (rad or m).
+      v0, v1: velocities at the start/end knot (rad/s or m/s).
+      h: segment duration ``t_{k+1} - t_k`` (s), > 0.
+      s0, s1: normalised sub-range, ``0 <= s0 <= s1 <= 1``; ``s0 == s1`` gives ``|qdot(s0)|``.
+
+    Returns:
+      Componentwise maximum speed over the sub-range (rad/s or m/s), dtype of the inputs.
+
+    Candidates are ``s0``, ``s1`` and the vertex of the quadratic ``qdot_j`` clipped into
+    ``[s0, s1]`` (clipping keeps it a point of the sub-range; when ``c2 == 0`` the speed is
+    linear and the ends suffice, so the vertex candidate is set to ``s0``). No NaN for finite
+    input with ``h > 0``; zero speed returns 0.
+    """
+    d = (q1 - q0) / h
+    c1 = 6 * d - 4 * v0 - 2 * v1
+    c2 = 3 * v0 + 3 * v1 - 6 * d
+    flat = c2 == 0
+    c2_safe = jnp.where(flat, jnp.ones_like(c2), c2)
+    s_vertex = -c1 / (2 * c2_safe)  # may be +-inf if c2 is tiny; clip handles that
+    s0 = jnp.asarray(s0, dtype=d.dtype)
+    s1 = jnp.asarray(s1, dtype=d.dtype)
+    s_vertex = jnp.where(flat, s0, jnp.clip(s_vertex, s0, s1))
+    w0 = jnp.abs(_segment_velocity(v0, v1, d, s0))
+    w1 = jnp.abs(_segment_velocity(v0, v1, d, s1))
+    wv = jnp.abs(_segment_velocity(v0, v1, d, s_vertex))
+    return jnp.maximum(jnp.maximum(w0, w1), wv)
+
+
+# ------------------------------------------------------------------------------------------
+# Spline pytree
+# ------------------------------------------------------------------------------------------
+
+
+def _build_speed_table(t_knots, q_knots, qd_knots):
+    """Sparse table ``(L, K, n)`` of segment speed maxima (jnp; works under jit/vmap)."""
+    K = t_knots.shape[0] - 1
+    L = num_table_levels(K)
+    h = t_knots[1:] - t_knots[:-1]  # (K,)
+    zero = jnp.zeros_like(h)
+    one = jnp.ones_like(h)
+    level = segment_speed_max(
+        q_knots[:-1], qd_knots[:-1], q_knots[1:], qd_knots[1:], h[:, None], zero[:, None], one[:, None]
+    )  # (K, n): exact max of |qdot_j| over the whole segment k
+    levels = [level]
+    for lv in range(1, L):
+        half = 1 << (lv - 1)
+        shifted_idx = jnp.minimum(jnp.arange(K) + half, K - 1)  # clamped at the end
+        level = jnp.maximum(level, level[shifted_idx])
+        levels.append(level)
+    return jnp.stack(levels, axis=0)
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class HermiteSpline:
+    """A piecewise-cubic Hermite joint trajectory with a segment-speed range-maximum table.
+
+    All fields are arrays (pytree children). A *batch* of splines is the same class with a
+    leading batch axis ``B`` on every field (build it with :func:`batch_from_waypoints` or
+    ``jax.vmap(HermiteSpline.from_waypoints)`` on padded, stacked waypoints); the kernels in
+    this module take single items and are mapped with ``jax.vmap``.
+    """
+
+    t_knots: jax.Array
+    """(K+1,) knot times ``t_0 < ... < t_K``, s."""
+    q_knots: jax.Array
+    """(K+1, n) knot positions, rad (revolute) or m (prismatic)."""
+    qd_knots: jax.Array
+    """(K+1, n) knot velocities, rad/s or m/s."""
+    speed_table: jax.Array
+    """(L, K, n) sparse table, rad/s or m/s: ``speed_table[l, k, j]`` is the exact max of
+    ``|qdot_j|`` over segments ``k .. min(k + 2**l - 1, K - 1)`` (level 0: segment ``k``
+    alone); ``L = max(1, ceil(log2 K) + 1)``."""
+
+    @property
+    def num_segments(self) -> int:
+        """``K`` (static, from the array shape; padding segments included)."""
+        return self.t_knots.shape[-1] - 1
+
+    # Element access used by the single-item kernels. :class:`SplineRow` offers the same
+    # methods for one spline of a batch, read in place.
+    def knots(self):
+        return self.t_knots
+
+    def knot(self, i):
+        """``(t_i, q_i, qd_i)``."""
+        return self.t_knots[i], self.q_knots[i], self.qd_knots[i]
+
+    def table(self, level, i):
+        return self.speed_table[level, i]
+
+    @property
+    def num_joints(self) -> int:
+        """``n`` (static)."""
+        return self.q_knots.shape[-1]
+
+    @classmethod
+    def from_waypoints(cls, t, q, qd) -> "HermiteSpline":
+        """Build a spline from waypoint times ``(K+1,)``, positions and velocities ``(K+1, n)``.
+
+        Accepts NumPy or JAX arrays; the common floating dtype of the inputs is used (float32
+        unless x64 is enabled and an input is float64). Shapes are checked; values are not
+        (times must be strictly increasing — checked by the trajectory loader). Works under
+        ``jax.jit`` and ``jax.vmap`` (the table is built with ``jnp``).
+        """
+        t = jnp.asarray(t)
+        q = jnp.asarray(q)
+        qd = jnp.asarray(qd)
+        if t.ndim != 1 or t.shape[0] < 2:
+            raise LarcInputError(f"hermite: t must have shape (K+1,) with K >= 1, got {t.shape}")
+        if q.ndim != 2 or q.shape[0] != t.shape[0]:
+            raise LarcInputError(f"hermite: q must have shape ({t.shape[0]}, n), got {q.shape}")
+        if qd.shape != q.shape:
+            raise LarcInputError(f"hermite: qd must have shape {q.shape}, got {qd.shape}")
+        dtype = jnp.result_type(t.dtype, q.dtype, qd.dtype, jnp.float32)
+        t = t.astype(dtype)
+        q = q.astype(dtype)
+        qd = qd.astype(dtype)
+        return cls(t_knots=t, q_knots=q, qd_knots=qd, speed_table=_build_speed_table(t, q, qd))
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class SplineRow:
+    """Spline ``k`` of a batched :class:`HermiteSpline`, read in place.
+
+    The single-item kernels (:func:`evaluate`, :func:`speed_max`) only read a spline through
+    ``knots()``, ``knot(i)`` and ``table(level, i)``. Mapped over intervals with ``jax.vmap``,
+    ``batch[k]`` would first copy each interval's whole spline (all knots and the whole sparse
+    table: hundreds of KB per interval for long trajectories); a row reads just the elements
+    the kernel touches (two-index gathers), which keeps the interval kernel compute-bound.
+    """
+
+    batch: HermiteSpline
+    k: jax.Array
+    """Index of the spline in the batch (scalar int)."""
+
+    @property
+    def num_segments(self) -> int:
+        return self.batch.t_knots.shape[-1] - 1
+
+    @property
+    def num_joints(self) -> int:
+        return self.batch.q_knots.shape[-1]
+
+    def knots(self):
+        return self.batch.t_knots[self.k]
+
+    def knot(self, i):
+        b = self.batch
+        return b.t_knots[self.k, i], b.q_knots[self.k, i], b.qd_knots[self.k, i]
+
+    def table(self, level, i):
+        return self.batch.speed_table[self.k, level, i]
+
+
+# ------------------------------------------------------------------------------------------
+# Padding and batching
+# ------------------------------------------------------------------------------------------
+
+
+def pad_waypoints(t, q, qd, n_knots: int):
+    """Pad a trajectory to exactly ``n_knots`` knots (NumPy).
+
+    Extra knots are *appended* after ``t_K`` at ``t_K + 1, t_K + 2, ...`` s, with ``q_K``
+    repeated and zero velocity, so times stay strictly increasing and any interval inside the
+    original ``[t_0, t_K]`` only touches original segments (:func:`speed_max` assigns an
+    interval ending at ``t_K`` to the last original segment). Returns new arrays
+    ``(t (n_knots,), q (n_knots, n), qd (n_knots, n))``; the dtype of each input is kept.
+    """
+    t = np.asarray(t)
+    q = np.asarray(q)
+    qd = np.asarray(qd)
+    if t.ndim != 1 or q.ndim != 2 or q.shape[0] != t.shape[0] or qd.shape != q.shape:
+        raise LarcInputError(
+            f"hermite: pad_waypoints needs t (K+1,), q and qd (K+1, n); got {t.shape}, {q.shape}, {qd.shape}"
+        )
+    m = int(n_knots) - t.shape[0]
+    if m < 0:
+        raise LarcInputError(f"hermite: cannot pad {t.shape[0]} knots down to n_knots={n_knots}")
+    if m == 0:
+        return t.copy(), q.copy(), qd.copy()
+    t_pad = (t[-1] + np.arange(1, m + 1, dtype=np.float64)).astype(t.dtype)
+    if not np.all(np.diff(np.concatenate([t[-1:], t_pad])) > 0):
+        raise LarcInputError(f"hermite: padding times after t_K={t[-1]!r} are not increasing in {t.dtype}")
+    t_out = np.concatenate([t, t_pad])
+    q_out = np.concatenate([q, np.repeat(q[-1:], m, axis=0)], axis=0)
+    qd_out = np.concatenate([qd, np.zeros((m, qd.shape[1]), dtype=qd.dtype)], axis=0)
+    return t_out, q_out, qd_out
+
+
+def batch_from_waypoints(
+    ts: Sequence[np.ndarray],
+    qs: Sequence[np.ndarray],
+    qds: Sequence[np.ndarray],
+    n_knots: int | None = None,
+) -> HermiteSpline:
+    """Pad each trajectory with :func:`pad_waypoints` and build a batched :class:`HermiteSpline`.
+
+    ``n_knots`` defaults to the largest knot count. Every field of the result has a leading
+    batch axis ``B = len(ts)``: ``t_knots (B, N)``, ``q_knots (B, N, n)``, ``qd_knots (B, N, n)``,
+    ``speed_table (B, L, N-1, n)``.
+    """
+    if not (len(ts) == len(qs) == len(qds)) or len(ts) == 0:
+        raise LarcInputError("hermite: batch_from_waypoints needs equally many (>= 1) t, q, qd arrays")
+    if n_knots is None:
+        n_knots = max(np.asarray(t).shape[0] for t in ts)
+    padded = [pad_waypoints(t, q, qd, n_knots) for t, q, qd in zip(ts, qs, qds)]
+    T = np.stack([p[0] for p in padded])
+    Q = np.stack([p[1] for p in padded])
+    QD = np.stack([p[2] for p in padded])
+    return jax.vmap(HermiteSpline.from_waypoints)(T, Q, QD)
+
+
+# ------------------------------------------------------------------------------------------
+# Single-item kernels
+# ------------------------------------------------------------------------------------------
+
+
+def evaluate(spline: HermiteSpline, t):
+    """Position and velocity at scalar time ``t`` (s): returns ``(q (n,), qd (n,))``.
+
+    ``t`` in ``[t_k, t_{k+1})`` uses segment ``k``; ``t = t_K`` uses the last segment at
+    ``s = 1``. Outside ``[t_0, t_K]`` the end segment's cubic is *extrapolated* (segment 0
+    before ``t_0``, segment ``K-1`` after ``t_K``), like SciPy's ``extrapolate=True``. For a
+    padded spline, times after the original ``t_K`` fall in the padding segments.
+    """
+    tk = spline.knots()
+    K = tk.shape[0] - 1
+    t = jnp.asarray(t, dtype=tk.dtype)
+    k = jnp.clip(jnp.searchsorted(tk, t, side="right").astype(jnp.int32) - 1, 0, K - 1)
+    t0, q0, v0 = spline.knot(k)
+    t1, q1, v1 = spline.knot(k + 1)
+    h = t1 - t0
+    s = (t - t0) / h
+    one = jnp.ones_like(s)
+    om = one - s
+    h00 = (one + 2 * s) * om * om
+    h10 = s * om * om
+    h01 = s * s * (3 * one - 2 * s)
+    h11 = s * s * (s - one)
+    q = h00 * q0 + (h10 * h) * v0 + h01 * q1 + (h11 * h) * v1
+    qd = _segment_velocity(v0, v1, (q1 - q0) / h, s)
+    return q, qd
+
+
+def speed_max(spline: HermiteSpline, a, b):
+    """Exact ``max_{t in [a, b]} |qdot_j(t)|`` for every joint ``j`` (paper eq. 5): ``(n,)``.
+
+    Preconditions: ``t_0 <= a <= b <= t_K`` (scalars, s). Values outside ``[t_0, t_K]`` are
+    clamped into it (for a padded spline "``t_K``" is the padded end); ``a > b`` gives an
+    unspecified, finite value.
+
+    Method. The first touched segment is ``ia`` (the ``k`` with ``t_k <= a < t_{k+1}``) and the
+    last is ``ib`` (the ``k`` with ``t_k < b <= t_{k+1}``), both located with
+    ``jnp.searchsorted``; ``ib`` uses ``side='left'`` so that ``b = t_k`` ends on segment
+    ``k-1`` (an interval ending at the original ``t_K`` of a padded spline never touches
+    padding). A zero-width interval at a knot has ``ia = ib + 1``; then ``ia := ib`` and the
+    value is read at ``s = 1`` of segment ``ib``, which equals the knot velocity exactly.
+    The first and last segments contribute exact partial maxima over their clipped
+    sub-ranges (:func:`segment_speed_max`); the ``c = ib - ia - 1`` fully covered segments
+    contribute ``max(T[l, ia+1], T[l, ib - 2**l])`` with ``l = floor(log2 c)`` from the sparse
+    table (masked out when ``c = 0``). Cost is O(n) plus the two binary searches.
+    """
+    tk = spline.knots()
+    K = tk.shape[0] - 1
+    L = num_table_levels(K)
+    dtype = tk.dtype
+    a = jnp.asarray(a, dtype=dtype)
+    b = jnp.asarray(b, dtype=dtype)
+
+    ib = jnp.clip(jnp.searchsorted(tk, b, side="left").astype(jnp.int32) - 1, 0, K - 1)
+    ia = jnp.clip(jnp.searchsorted(tk, a, side="right").astype(jnp.int32) - 1, 0, K - 1)
+    ia = jnp.minimum(ia, ib)
+    same = ia == ib
+
+    def seg(k):
+        t0, q0, v0 = spline.knot(k)
+        t1, q1, v1 = spline.knot(k + 1)
+        return t0, t1 - t0, q0, v0, q1, v1
+
+    ta, ha, qa0, va0, qa1, va1 = seg(ia)
+    tb, hb, qb0, vb0, qb1, vb1 = seg(ib)
+    zero = jnp.zeros((), dtype)
+    one = jnp.ones((), dtype)
+    sa = jnp.clip((a - ta) / ha, zero, one)  # a's position in segment ia
+    sb = jnp.clip((b - tb) / hb, zero, one)  # b's position in segment ib
+    # First touched segment over [sa, 1] (or [sa, sb] when a and b share a segment).
+    w_first = segment_speed_max(qa0, va0, qa1, va1, ha, sa, jnp.where(same, sb, one))
+    # Last touched segment over [0, sb] (or [sa, sb] when shared).
+    w_last = segment_speed_max(qb0, vb0, qb1, vb1, hb, jnp.where(same, sa, zero), sb)
+
+    # Fully covered segments ia+1 .. ib-1: O(1) sparse-table range maximum.
+    count = jnp.maximum(ib - ia - 1, 0)
+    nbits = jnp.iinfo(count.dtype).bits
+    lvl = jnp.clip(nbits - 1 - jax.lax.clz(count), 0, L - 1)  # floor(log2 count) for count >= 1
+    pow2 = jnp.left_shift(jnp.ones_like(count), lvl)
+    i_lo = jnp.clip(ia + 1, 0, K - 1)
+    i_hi = jnp.clip(ib - pow2, 0, K - 1)  # (ib - 1) - 2**l + 1
+    w_mid = jnp.maximum(spline.table(lvl, i_lo), spline.table(lvl, i_hi))
+    w_mid = jnp.where(count > 0, w_mid, jnp.zeros_like(w_mid))
+
+    return jnp.maximum(jnp.maximum(w_first, w_last), w_mid)
+
+
+# ------------------------------------------------------------------------------------------
+# NumPy float64 references (independent: power form in tau = t - t_k, plain loops)
+# ------------------------------------------------------------------------------------------
+
+
+def _power_coeffs_np(t_knots, q_knots, qd_knots, k):
+    """Coefficients of q(t_k + tau) = a0 + a1 tau + a2 tau^2 + a3 tau^3 on segment k."""
+    h = float(t_knots[k + 1] - t_knots[k])
+    y0, y1 = q_knots[k], q_knots[k + 1]
+    m0, m1 = qd_knots[k], qd_knots[k + 1]
+    slope = (y1 - y0) / h
+    a2 = (3.0 * slope - 2.0 * m0 - m1) / h
+    a3 = (m0 + m1 - 2.0 * slope) / (h * h)
+    return y0, m0, a2, a3, h
+
+
+def evaluate_np(t_knots, q_knots, qd_knots, t):
+    """NumPy float64 reference of :func:`evaluate`: ``(q (n,), qd (n,))`` at scalar ``t``."""
+    t_knots = np.asarray(t_knots, dtype=np.float64)
+    q_knots = np.asarray(q_knots, dtype=np.float64)
+    qd_knots = np.asarray(qd_knots, dtype=np.float64)
+    K = t_knots.shape[0] - 1
+    t = float(t)
+    k = 0
+    while k < K - 1 and t >= t_knots[k + 1]:
+        k += 1
+    a0, a1, a2, a3, _ = _power_coeffs_np(t_knots, q_knots, qd_knots, k)
+    tau = t - t_knots[k]
+    q = a0 + tau * (a1 + tau * (a2 + tau * a3))
+    qd = a1 + tau * (2.0 * a2 + tau * 3.0 * a3)
+    return q, qd
+
+
+def speed_max_np(t_knots, q_knots, qd_knots, a, b):
+    """NumPy float64 reference of :func:`speed_max` (paper eq. 5), for ``t_0 <= a <= b <= t_K``.
+
+    Loops over every segment ``[t_k, t_{k+1}]`` that intersects ``[a, b]`` (a zero-width
+    interval at a knot touches both neighbours) and takes, per joint, the largest ``|qdot|`` at
+    the clipped ends and at the vertex of the quadratic ``qdot`` when it lies inside.
+    """
+    t_knots = np.asarray(t_knots, dtype=np.float64)
+    q_knots = np.asarray(q_knots, dtype=np.float64)
+    qd_knots = np.asarray(qd_knots, dtype=np.float64)
+    a = float(a)
+    b = float(b)
+    K = t_knots.shape[0] - 1
+    n = q_knots.shape[1]
+    best = np.zeros(n)
+    for k in range(K):
+        lo, hi = t_knots[k], t_knots[k + 1]
+        if hi < a or lo > b:
+            continue
+        _, a1, a2, a3, h = _power_coeffs_np(t_knots, q_knots, qd_knots, k)
+        tau0 = max(a, lo) - lo
+        tau1 = min(b, hi) - lo
+        for j in range(n):
+            cands = [tau0, tau1]
+            if a3[j] != 0.0:
+                tv = -a2[j] / (3.0 * a3[j])  # root of qddot_j = 2 a2 + 6 a3 tau
+                if tau0 < tv < tau1:
+                    cands.append(tv)
+            for tau in cands:
+                val = abs(a1[j] + tau * (2.0 * a2[j] + tau * 3.0 * a3[j]))
+                best[j] = max(best[j], val)
+    return best

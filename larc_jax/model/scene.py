@@ -1,0 +1,380 @@
+"""Static obstacle scenes: axis-aligned boxes in the robot base frame.
+
+Scene YAML::
+
+    frame: base_link            # must be the robot's root link
+    units: m                    # optional; only metres are accepted
+    name: cell                  # optional
+    boxes:
+      - {name: wall_left, min: [x, y, z], max: [x, y, z]}
+
+Any other field, in the scene or in a box, is an error naming it (a typo such as ``obstacle:``
+or ``box:`` must not read as a scene with fewer boxes).
+
+MoveIt ``.scene`` text (``PlanningScene::saveGeometryToStream``, MoveIt 1 and 2), read when the
+file name ends in ``.scene``::
+
+    scene name
+    * object name
+    px py pz                    # object pose: present in the newer layout only
+    qx qy qz qw
+    1                           # number of shapes
+    box
+    sx sy sz                    # full side lengths, m
+    px py pz                    # shape pose, relative to the object pose
+    qx qy qz qw
+    r g b a                     # colour (ignored)
+    0                           # subframes: newer layout only (name + pose each; ignored)
+    .
+
+As in MoveIt, the newer layout is recognised by the line after the first ``*`` line holding
+several numbers (a position) rather than one (the shape count). Coordinates are metres in the
+MoveIt planning frame, which is taken to be the robot base frame (PIPER: ``base_link``): a scene
+saved in another planning frame must be re-expressed first. A box whose orientation (object
+pose composed with shape pose) is exactly the identity becomes its exact AABB; any other box is
+replaced by its enclosing AABB, rounded outwards (conservative: a certificate against the
+larger box holds for the real one), with a warning naming the file and object when the rotation exceeds 1e-9. Spheres,
+cylinders, cones, meshes and planes are refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import re
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import yaml
+
+from ..errors import LarcInputError
+from ..io import check_keys, deferred_log, parse_vector, parse_yaml, read_input_text, real_array, short_repr
+
+__all__ = ["Scene", "read_scene", "read_moveit_scene", "scene_from_dict", "pad_scenes"]
+
+log = logging.getLogger(__name__)
+
+IDENTITY_TOLERANCE = 1e-9
+"""A box orientation within this (max-abs rotation-matrix entry) of the identity is not warned
+about; its box is still the (padded) enclosing AABB, never the unrotated one."""
+
+QUATERNION_NORM_TOLERANCE = 1e-3
+"""A ``.scene`` quaternion is normalised; one whose norm is further than this from 1 is refused
+(MoveIt writes 6 significant digits, so a genuine rotation is within ~1e-6)."""
+
+
+def _corner_text(v: float) -> str:
+    """A box coordinate in a message, to 0.1 mm: a value that rounds to zero prints as
+    '0.0000', never '-0.0000' (the box's padding puts a corner on 0 a hair below it)."""
+    return f"{round(float(v), 4) + 0.0:.4f}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """Obstacle boxes of one scene.
+
+    The constructor accepts array-likes (``[[x, y, z], ...]``; ``[]`` for no boxes) and stores
+    read-only float64 copies; a wrong type or shape (a single box given as ``[x, y, z]``, say),
+    a non-finite corner, ``min > max``, or a wrong number of names raises
+    :class:`LarcInputError` naming the field and box.
+    """
+
+    lo: np.ndarray
+    """(B, 3) box minimum corners in the base frame, m."""
+    hi: np.ndarray
+    """(B, 3) box maximum corners in the base frame, m (hi >= lo componentwise)."""
+    box_names: tuple[str, ...] = ()
+    """B names (default ``box0``, ``box1``, ...)."""
+    name: str = ""
+    frame: str = ""
+    """The frame the boxes are in: the robot's root link; "" (default) means exactly that."""
+    source: str = ""
+
+    def __post_init__(self):
+        for field in ("name", "frame", "source"):
+            if not isinstance(getattr(self, field), str):
+                raise LarcInputError(f"Scene.{field} must be a string, got {short_repr(getattr(self, field))}")
+        src = self.source or self.name or "Scene"
+        lo, hi = (_boxes_array(getattr(self, f), f"{src}: Scene.{f}") for f in ("lo", "hi"))
+        if lo.shape != hi.shape:
+            raise LarcInputError(f"{src}: Scene.lo has {len(lo)} boxes but Scene.hi has {len(hi)}")
+        for f, arr in (("lo", lo), ("hi", hi)):
+            if not np.isfinite(arr).all():
+                k, i = map(int, np.argwhere(~np.isfinite(arr))[0])
+                raise LarcInputError(f"{src}: Scene.{f}[{k}][{i}] is not finite ({float(arr[k, i])!r})")
+        if (lo > hi).any():
+            k, i = map(int, np.argwhere(lo > hi)[0])
+            raise LarcInputError(f"{src}: box {k}: Scene.lo[{k}][{i}] = {float(lo[k, i])!r} exceeds "
+                                 f"Scene.hi[{k}][{i}] = {float(hi[k, i])!r}")
+        names = self.box_names
+        if isinstance(names, str) or not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+            raise LarcInputError(f"{src}: Scene.box_names must be a list of names, got {short_repr(names)}")
+        if names and len(names) != len(lo):
+            raise LarcInputError(f"{src}: Scene.box_names has {len(names)} names for {len(lo)} boxes")
+        for field, value in (("lo", lo), ("hi", hi), ("box_names", tuple(names) or tuple(f"box{k}" for k in range(len(lo))))):
+            object.__setattr__(self, field, value)
+
+    @property
+    def n_boxes(self) -> int:
+        return len(self.lo)
+
+    @staticmethod
+    def empty(name: str = "empty") -> "Scene":
+        return Scene(lo=np.zeros((0, 3)), hi=np.zeros((0, 3)), name=name)
+
+
+def _boxes_array(value, where: str) -> np.ndarray:
+    """(B, 3) corners; an empty list or array means no boxes."""
+    if (isinstance(value, (list, tuple)) and len(value) == 0) or (isinstance(value, np.ndarray) and value.shape == (0,)):
+        return real_array(np.zeros((0, 3)), where, 2, 3)
+    return real_array(value, where, 2, 3)
+
+
+_SCENE_KEYS = ("frame", "units", "name", "boxes")
+_BOX_KEYS = ("name", "min", "max")
+
+
+def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str | None = None) -> Scene:
+    """Build a scene from a parsed YAML mapping; ``frame`` (if given) is the required frame."""
+    if not isinstance(doc, dict):
+        raise LarcInputError(f"{source}: expected a mapping with 'frame' and 'boxes'")
+    check_keys(doc, _SCENE_KEYS, source)
+    scene_frame = doc.get("frame", "base_link")
+    if not isinstance(scene_frame, str):
+        raise LarcInputError(f"{source}: frame must be a link name, got {short_repr(scene_frame)}")
+    if frame is not None and scene_frame != frame:
+        raise LarcInputError(
+            f"{source}: frame '{scene_frame}' is not the robot base frame '{frame}'"
+        )
+    units = doc.get("units", "m")
+    if not isinstance(units, str) or units not in ("m", "meter", "meters", "metre", "metres"):
+        raise LarcInputError(
+            f"{source}: units {short_repr(units)} are not supported (boxes are in metres: use m)")
+    if "boxes" not in doc:  # a typo ('box:') must not read as an empty scene that certifies all
+        raise LarcInputError(
+            f"{source}: missing field 'boxes' (found fields {short_repr(sorted(map(str, doc)))}); "
+            f"write 'boxes: []' for a scene without obstacles")
+    boxes = doc["boxes"]
+    if boxes is None:
+        boxes = []
+    if not isinstance(boxes, list):
+        raise LarcInputError(f"{source}: boxes must be a list, got {short_repr(boxes)}")
+    lo, hi, names = [], [], []
+    for k, box in enumerate(boxes):
+        where = f"boxes[{k}]"
+        if not isinstance(box, dict):
+            raise LarcInputError(f"{source}: {where} must be a mapping with min and max")
+        check_keys(box, _BOX_KEYS, source, where)
+        for key in ("min", "max"):
+            if key not in box:
+                raise LarcInputError(f"{source}: {where}.{key} is missing")
+        b_lo = parse_vector(box["min"], 3, source, f"{where}.min", finite=True)
+        b_hi = parse_vector(box["max"], 3, source, f"{where}.max", finite=True)
+        if (b_lo > b_hi).any():
+            i = int(np.flatnonzero(b_lo > b_hi)[0])
+            raise LarcInputError(
+                f"{source}: {where}.min[{i}] = {b_lo[i]} exceeds {where}.max[{i}] = {b_hi[i]}"
+            )
+        lo.append(b_lo)
+        hi.append(b_hi)
+        box_name = box.get("name", f"box{k}")
+        if isinstance(box_name, bool) or not isinstance(box_name, (str, int, float)):
+            raise LarcInputError(f"{source}: {where}.name must be a string, got {short_repr(box_name)}")
+        names.append(str(box_name))
+    return Scene(
+        lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
+        name=name or str(doc.get("name", "")), frame=scene_frame, source=source,
+    )
+
+
+def read_scene(path: str | Path, *, frame: str | None = None) -> Scene:
+    """Read a scene file: MoveIt ``.scene`` text if the name ends in ``.scene``, else YAML.
+
+    ``frame`` (if given) is the robot base frame the scene must be in. A YAML scene states its
+    frame and is checked; a ``.scene`` file has none and is taken to be in it (module docstring).
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".scene":
+        with deferred_log(log):  # a refused file gives its error line only, not warnings too
+            return read_moveit_scene(path, frame=frame)
+    doc = parse_yaml(read_input_text(path, "scene file"), str(path))
+    if doc is None:
+        raise LarcInputError(f"{path}: scene file is empty")
+    return scene_from_dict(doc, source=str(path), name=path.stem, frame=frame)
+
+
+class _Tokens:
+    """Whitespace-separated tokens of a ``.scene`` file with their line numbers (MoveIt reads
+    the file as a stream, so line breaks between numbers do not matter)."""
+
+    def __init__(self, lines: list[str], start: int, source: str):
+        self.items: list[tuple[str, int, str]] = []   # (token, line number, rest of line after '*')
+        for lineno in range(start, len(lines)):
+            line = lines[lineno]
+            for m in re.finditer(r"\S+", line):
+                rest = line[m.end():].strip() if m.group() == "*" else ""
+                self.items.append((m.group(), lineno + 1, rest))
+        self.pos = 0
+        self.source = source
+        self.last_line = len(lines)
+
+    def error(self, line: int, message: str) -> LarcInputError:
+        return LarcInputError(f"{self.source}:{line}: {message}")
+
+    def next(self, what: str) -> tuple[str, int, str]:
+        if self.pos >= len(self.items):
+            raise self.error(self.last_line, f"file ends where {what} was expected (no '.' end line?)")
+        item = self.items[self.pos]
+        self.pos += 1
+        return item
+
+    def skip_line(self, line: int) -> None:
+        while self.pos < len(self.items) and self.items[self.pos][1] == line:
+            self.pos += 1
+
+    def number(self, what: str) -> tuple[float, int]:
+        tok, line, _ = self.next(what)
+        try:
+            value = float(tok)
+        except ValueError:
+            raise self.error(line, f"{what}: '{tok}' is not a number") from None
+        if not math.isfinite(value):
+            raise self.error(line, f"{what}: '{tok}' is not finite")
+        return value, line
+
+    def count(self, what: str) -> tuple[int, int]:
+        tok, line, _ = self.next(what)
+        if not (tok.isascii() and tok.isdigit()):
+            raise self.error(line, f"{what}: '{tok}' is not a non-negative integer")
+        return int(tok), line
+
+    def pose(self, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """Position and rotation matrix of ``px py pz qx qy qz qw``."""
+        p = np.array([self.number(f"{what} position")[0] for _ in range(3)])
+        q = np.empty(4)
+        for i in range(4):
+            q[i], line = self.number(f"{what} orientation")
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise self.error(line, f"{what} orientation quaternion {q.tolist()} has norm {norm:.6g}, not 1")
+        return p, _rotation(q / norm)
+
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+_OTHER_SHAPES = ("sphere", "cylinder", "cone", "mesh", "plane", "octree")
+
+
+def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
+    """Read a MoveIt ``.scene`` text file (old and new layouts; see the module docstring).
+
+    Errors are ``file:line: message``. Only boxes are accepted; rotated boxes become their
+    enclosing AABB (logged as a warning). The scene's frame is ``frame`` (default
+    ``base_link``): the file itself names none.
+    """
+    path = Path(path)
+    source = str(path)
+    text = read_input_text(path, "scene file")  # missing, directory, permissions, binary
+    lines = text.splitlines()
+    if not text.strip():
+        raise LarcInputError(f"{path}: scene file is empty")
+    toks = _Tokens(lines, 1, source)
+    # Layout detection as in MoveIt: the line after the first '*' line has spaces in the new one.
+    new_layout = False
+    for i in range(1, len(lines)):
+        if lines[i].startswith("*"):
+            following = lines[i + 1].strip() if i + 1 < len(lines) else ""
+            new_layout = len(following.split()) > 1
+            break
+    lo, hi, names = [], [], []
+    seen: set[str] = set()
+    while True:
+        marker, line, rest = toks.next("'* object name' or the end line '.'")
+        if marker == ".":
+            break
+        if marker != "*":
+            raise toks.error(line, f"expected '* object name' or the end line '.', found '{marker}'")
+        obj = rest
+        if not obj:
+            raise toks.error(line, "object has no name after '*'")
+        if obj in seen:
+            raise toks.error(line, f"object '{obj}' appears twice")
+        seen.add(obj)
+        toks.skip_line(line)
+        if new_layout:
+            p_obj, r_obj = toks.pose(f"object '{obj}' pose")
+        else:
+            p_obj, r_obj = np.zeros(3), np.eye(3)
+        n_shapes, _ = toks.count(f"object '{obj}' shape count")
+        for k in range(n_shapes):
+            shape, sline, _ = toks.next(f"object '{obj}' shape {k} type")
+            if shape != "box":
+                kind = shape if shape in _OTHER_SHAPES else f"unknown shape type '{shape}'"
+                raise toks.error(
+                    sline, f"object '{obj}' shape {k} is a {kind}: only boxes are supported "
+                    f"(replace it by a box that encloses it)")
+            size = np.empty(3)
+            for i in range(3):
+                size[i], dline = toks.number(f"object '{obj}' box size")
+            if (size < 0).any():
+                raise toks.error(dline, f"object '{obj}' box size {size.tolist()} is negative")
+            p_shape, r_shape = toks.pose(f"object '{obj}' shape {k} pose")
+            for _ in range(4):
+                toks.number(f"object '{obj}' shape {k} colour")
+            center = p_obj + r_obj @ p_shape
+            rot = r_obj @ r_shape
+            half = size / 2.0
+            box_name = obj if n_shapes == 1 else f"{obj}[{k}]"
+            # Always the enclosing AABB: exact (ext == half, no pad) for the identity, and padded
+            # outwards by more than the rounding error of |R| @ half otherwise, so a rotation that
+            # is only *nearly* the identity never shrinks the box.
+            exact = bool((rot == np.eye(3)).all())
+            ext = half if exact else np.abs(rot) @ half
+            pad = 0.0 if exact else 8 * np.finfo(np.float64).eps * (np.abs(center) + ext)
+            b_lo, b_hi = center - ext - pad, center + ext + pad
+            if np.abs(rot - np.eye(3)).max() > IDENTITY_TOLERANCE:  # a real rotation: say so
+                log.warning("%s: object '%s' (line %d) is a rotated box: replaced by its enclosing "
+                            "axis-aligned box [%s] .. [%s] (conservative)", source, box_name, sline,
+                            ", ".join(map(_corner_text, b_lo)), ", ".join(map(_corner_text, b_hi)))
+            lo.append(b_lo)
+            hi.append(b_hi)
+            names.append(box_name)
+        if new_layout:
+            n_sub, _ = toks.count(f"object '{obj}' subframe count")
+            for k in range(n_sub):
+                toks.next(f"object '{obj}' subframe {k} name")
+                toks.pose(f"object '{obj}' subframe {k} pose")
+    if toks.pos < len(toks.items):
+        tok, line, _ = toks.items[toks.pos]
+        raise toks.error(line, f"'{tok}' after the end line '.' (one scene per file)")
+    return Scene(
+        lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
+        name=path.stem, frame=frame or "", source=source,
+    )
+
+
+def pad_scenes(scenes: Sequence[Scene], n_boxes: int | None = None):
+    """Stack scenes into padded arrays.
+
+    Returns ``lo (S, B, 3)``, ``hi (S, B, 3)``, ``mask (S, B)`` with B = ``n_boxes`` or the
+    largest scene (at least 1). Padding boxes are degenerate at the origin and masked out.
+    """
+    B = max([s.n_boxes for s in scenes] + [1]) if n_boxes is None else n_boxes
+    lo = np.zeros((len(scenes), B, 3))
+    hi = np.zeros((len(scenes), B, 3))
+    mask = np.zeros((len(scenes), B), bool)
+    for i, s in enumerate(scenes):
+        lo[i, : s.n_boxes] = s.lo
+        hi[i, : s.n_boxes] = s.hi
+        mask[i, : s.n_boxes] = True
+    return lo, hi, mask

@@ -1,0 +1,1 @@
+"""Obstacles and their distance lower bounds."""

@@ -1,0 +1,286 @@
+"""A proven lower bound on the distance between a convex polytope and an axis-aligned box.
+
+The hull stage of the certificate (:mod:`larc_jax.leaf.cascade`) needs, for a link part ``P =
+conv(V)`` (its hull vertices, given in the link frame and placed by the link pose ``x -> R x +
+t``) and an obstacle box ``B = [lo, hi]``, a number that is *never more* than ``d(P, B) =
+min_{p in P, x in B} |x - p|``.
+
+Why any axis gives one. For every non-zero vector ``w`` and all ``p in P``, ``x in B``:
+``w . (x - p) <= |w| |x - p|``. Taking the minimum over ``x`` and ``p``::
+
+    d(P, B) >= lb(w) = (min_{x in B} w . x  -  max_{p in P} w . p) / |w|          (S)
+
+(a negative right-hand side is still a true, useless, bound). ``min_B w . x`` is attained at
+the box corner taking ``lo_i`` where ``w_i > 0`` and ``hi_i`` elsewhere; ``max_P w . p`` at a
+vertex (a linear function on a polytope), computed in the link frame as
+``w . t + max_v (R^T w) . v``. Both are exact, so (S) holds for *any* ``w``, however it was
+found: how the axes are chosen decides how tight the bound is, never whether it is sound.
+
+Which axes. Strong duality for two convex sets makes (S) exact at the best ``w``: the direction
+from the closest point of ``P`` to the closest point of ``B``. We search for it with GJK
+(Gilbert, Johnson, Keerthi 1988) on the Minkowski difference ``D = B - P``, whose point of
+least ``w``-projection is ``(box corner) - (support vertex)``: the search keeps a simplex of at
+most four points of ``D``; each step evaluates (S) at the current ``w``, adds the new point, and
+replaces ``w`` by the point of the simplex nearest the origin (:func:`_nearest_in_simplex`:
+every face of the simplex is projected on and the nearest projection inside its face is kept;
+a tetrahedron holding the origin means the sets may touch). The first axis points from the
+part's centre (``centre``, any point: it only seeds the search) to the box. The kernel runs a
+fixed number of steps (:data:`GJK_ITERATIONS`, so that it vectorises) and returns the largest
+(S) met. On the PIPER link hulls next to random boxes 1-30 mm away, 12 steps come within
+0.06 mm of the true distance (python-fcl on the hull mesh) in the worst of 900 cases and match
+it in 90 %; tests/test_polytope.py checks the one-sided inequality against FCL and dense
+sampling.
+
+Rounding (``u`` the unit roundoff of the dtype). The placed support vertex ``p = fl(R v_k + t)``
+is off the exactly placed one by the placement error that the hull part's rounding guard covers
+(budget G1 of :mod:`larc_jax.leaf.interval`, with the part's vertices in ``R_p``). What remains is
+bounded *a posteriori*, from the numbers of each evaluation, and subtracted from it:
+
+* the support vertex ``k`` is chosen with a rounded axis ``m = fl(R^T w)`` and rounded dot
+  products: it may miss the true maximum of ``w . (R v)`` by ``<= 12 u |w| max_j |v_j|``;
+* ``s = fl(corner - p)`` (one rounding per component), ``fl(w . s)`` (3 terms) and
+  ``fl(sqrt(w . w))`` and the division: ``<= 8 u (sum_i |w_i s_i| / |w| + |lb|)``.
+
+So each evaluation returns ``lb - 32 u (sum_i |w_i s_i| / |w| + |lb| + max_j |v_j|)`` (constants
+doubled, then more): never more than (S) for the computed placement. Only box coordinates that
+enter with a weight ``w_i`` count, relative to the bound itself; a far or huge box costs
+nothing elsewhere. The search itself may be inexact in any way without harm. Degenerate simplices are skipped by their determinant tests
+and a zero ``w`` is replaced by a fixed axis, so finite input gives a finite bound; NaN input
+gives NaN (never certifies).
+
+:func:`polytope_box_lower_bound` is the JAX kernel for one polytope and one box (batch with
+``jax.vmap``; it reads the vertices a column at a time, so a gathered vertex table fuses into
+the support reduction instead of being copied per pair); :func:`polytope_box_lower_bound_np` is
+its NumPy float64 reference, the same steps written with loops.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+
+from ..lazy_jax import jax, jnp
+
+__all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np"]
+
+GJK_ITERATIONS = 12
+"""GJK steps per polytope-box pair (fixed: the kernel is vectorised over pairs)."""
+
+_FACES = tuple(s for k in (1, 2, 3) for s in itertools.combinations(range(4), k))
+"""Faces of a 4-point simplex tried by the nearest-point step, in a fixed order (ties go to the
+first, in the kernel and the reference alike)."""
+
+_DEGENERATE = 1e-12
+"""A triangle whose Gram determinant is below this fraction of ``|e1|^2 |e2|^2`` is skipped
+(its nearest point lies on an edge, which is tried anyway)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# JAX kernel
+# ----------------------------------------------------------------------------------------------
+
+
+_FACE_I = np.array([f[0] for f in _FACES])
+_FACE_J = np.array([f[1] if len(f) > 1 else f[0] for f in _FACES])
+_FACE_K = np.array([f[2] if len(f) > 2 else f[0] for f in _FACES])
+_FACE_SIZE = np.array([len(f) for f in _FACES])
+
+
+def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
+    """Point of conv(active rows of ``Y`` (4, 3)) nearest the origin, and its weights (4,).
+
+    Every face (vertex, edge, triangle; all 14 at once, from the Gram matrix ``G = Y Y^T``) is
+    projected on; among the projections inside their face the shortest is the answer (the
+    nearest point lies in the relative interior of some face, and every candidate is a point of
+    the simplex). A full tetrahedron holding the origin gives the origin (weights from signed
+    volumes)."""
+    dtype = Y.dtype
+    G = Y @ Y.T
+    i, j, k = jnp.asarray(_FACE_I), jnp.asarray(_FACE_J), jnp.asarray(_FACE_K)
+    size = jnp.asarray(_FACE_SIZE)
+    gii, gij, gik, gjj, gjk, gkk = G[i, i], G[i, j], G[i, k], G[j, j], G[j, k], G[k, k]
+    # Edges (i, j): mu = (G_ii - G_ij) / |Y_j - Y_i|^2.
+    den = gii - 2 * gij + gjj
+    mu = (gii - gij) / jnp.where(den > 0, den, 1)
+    # Triangles (i, j, k): the 2x2 normal equations of the projection, by Cramer's rule.
+    a11, a22 = gjj - 2 * gij + gii, gkk - 2 * gik + gii
+    a12 = gjk - gij - gik + gii
+    r1, r2 = gii - gij, gii - gik
+    det = a11 * a22 - a12 * a12
+    safe = jnp.where(det > 0, det, 1)
+    mu1, mu2 = (r1 * a22 - r2 * a12) / safe, (r2 * a11 - r1 * a12) / safe
+    one, zero = jnp.ones_like(mu), jnp.zeros_like(mu)
+    lam = jnp.where((size == 1)[:, None], jnp.stack([one, zero, zero], 1),
+                    jnp.where((size == 2)[:, None], jnp.stack([1 - mu, mu, zero], 1),
+                              jnp.stack([1 - mu1 - mu2, mu1, mu2], 1)))  # (14, 3) on (i, j, k)
+    usable = jnp.where(size == 1, True, jnp.where(size == 2, den > 0, det > _DEGENERATE * a11 * a22))
+    ok = usable & active[i] & active[j] & active[k] & jnp.all(lam >= 0, axis=1)
+    # (14, 4) weights on the rows of Y (the unused slots of vertices and edges have weight 0).
+    W = (jax.nn.one_hot(i, 4, dtype=dtype) * lam[:, :1] + jax.nn.one_hot(j, 4, dtype=dtype) * lam[:, 1:2]
+         + jax.nn.one_hot(k, 4, dtype=dtype) * lam[:, 2:])
+    norm2 = jnp.where(ok, jnp.einsum("fa,ab,fb->f", W, G, W), jnp.inf)
+    lam4 = W[jnp.argmin(norm2)]
+    e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
+    vol = _triple(e1, e2, e3)
+    sub = jnp.stack([_triple(-Y[0], e2, e3), _triple(e1, -Y[0], e3), _triple(e1, e2, -Y[0])])
+    tmu = sub / jnp.where(vol != 0, vol, 1)
+    tet = jnp.concatenate([(1 - tmu.sum())[None], tmu])
+    inside = jnp.all(active) & (vol != 0) & jnp.all(tet >= 0)
+    lam4 = jnp.where(inside, tet, lam4)
+    x = jnp.where(inside, jnp.zeros(3, dtype), lam4 @ Y)
+    return x, lam4
+
+
+def _triple(a, b, c):
+    return a @ jnp.cross(b, c)
+
+
+def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,
+                             t: jax.Array, lo: jax.Array, hi: jax.Array,
+                             iterations: int = GJK_ITERATIONS) -> jax.Array:
+    """Lower bound on the distance between the placed polytope ``conv(R V + t)``, ``V =
+    vertices[part]``, and the box ``[lo, hi]`` (module docstring).
+
+    Args:
+      vertices: (P, K, 3) vertex table of all polytopes in their link frames, m (finite; rows
+        may repeat: padding). Indexed inside the support step so that under ``vmap`` the table
+        is read in place, never copied per pair.
+      part: scalar index of the polytope.
+      centre: (3,) any point in the link frame (seeds the search; the part's centre is best).
+      R, t: (3, 3), (3,) link pose in the box frame (rotation, translation m).
+      lo, hi: (3,) box corners, m, ``lo <= hi``.
+      iterations: GJK steps (static).
+
+    Returns:
+      Scalar, m: never more than the true distance (exact up to rounding once the search has
+      converged); <= 0 when the sets may touch; NaN for non-finite input.
+    """
+    dtype = R.dtype
+    centre, t, lo, hi = (x.astype(dtype) for x in (centre, t, lo, hi))
+    table = vertices.astype(dtype)
+    unit_x = jnp.array([1.0, 0.0, 0.0], dtype)
+    u = float(jnp.finfo(dtype).eps) / 2
+    v_max = jnp.max(jnp.abs(table[part]).sum(axis=1))  # >= max_j |v_j| (1-norm >= 2-norm)
+
+    def bound(w, part):
+        """(S) at ``w`` less its rounding bound (module docstring), and the point of D = B - P
+        attaining it."""
+        w = jnp.where(w @ w > 0, w, unit_x)  # any axis is sound; this one avoids 0/0
+        m = R.T @ w  # the axis in the link frame
+        V = table[part]  # read by the reduction only (fused); the winner is fetched apart
+        k = jnp.argmax(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
+        s = jnp.where(w > 0, lo, hi) - (R @ table[part, k] + t)
+        norm = jnp.sqrt(w @ w)
+        lb = (w @ s) / norm
+        return lb - 32 * u * (jnp.abs(w) @ jnp.abs(s) / norm + jnp.abs(lb) + v_max), s
+
+    c = R @ centre + t
+    best, s = bound(jnp.clip(c, lo, hi) - c, part)
+    Y = jnp.zeros((4, 3), dtype).at[0].set(s)
+    active = jnp.array([True, False, False, False])
+
+    def step(_, carry):
+        Y, active, w, best = carry
+        # The barrier keeps XLA from hoisting the loop-invariant table[part] out of the loop,
+        # which would copy the whole vertex table once per pair (memory, not arithmetic).
+        _, p = jax.lax.optimization_barrier((w, part))
+        lb, s = bound(w, p)
+        best = jnp.maximum(best, lb)
+        room = ~jnp.all(active)  # a full simplex holds the origin: nothing left to improve
+        slot = jnp.argmax(~active)
+        Y = jnp.where(room, Y.at[slot].set(s), Y)
+        active = jnp.where(room, active.at[slot].set(True), active)
+        w_new, lam = _nearest_in_simplex(Y, active)
+        return Y, jnp.where(room, lam > 0, active), jnp.where(room, w_new, w), best
+
+    _, _, _, best = jax.lax.fori_loop(0, iterations, step, (Y, active, s, best))
+    finite = jnp.isfinite(R).all() & jnp.isfinite(t).all() & jnp.isfinite(lo).all() & jnp.isfinite(hi).all()
+    return jnp.where(finite, best, jnp.nan)
+
+
+# ----------------------------------------------------------------------------------------------
+# NumPy float64 reference
+# ----------------------------------------------------------------------------------------------
+
+
+def _nearest_in_simplex_np(Y: np.ndarray, active: np.ndarray):
+    G = Y @ Y.T
+    best_n2, best_lam = math.inf, None
+    for face in _FACES:
+        if not all(active[i] for i in face):
+            continue
+        if len(face) == 1:
+            lam = np.array([1.0])
+        elif len(face) == 2:
+            i, j = face
+            den = G[i, i] - 2 * G[i, j] + G[j, j]
+            if not den > 0:
+                continue
+            mu = (G[i, i] - G[i, j]) / den
+            lam = np.array([1 - mu, mu])
+        else:
+            i, j, k = face
+            a11 = G[j, j] - 2 * G[i, j] + G[i, i]
+            a22 = G[k, k] - 2 * G[i, k] + G[i, i]
+            a12 = G[j, k] - G[i, j] - G[i, k] + G[i, i]
+            r1, r2 = G[i, i] - G[i, j], G[i, i] - G[i, k]
+            det = a11 * a22 - a12 * a12
+            if not det > _DEGENERATE * a11 * a22:
+                continue
+            mu1, mu2 = (r1 * a22 - r2 * a12) / det, (r2 * a11 - r1 * a12) / det
+            lam = np.array([1 - mu1 - mu2, mu1, mu2])
+        if (lam < 0).any():
+            continue
+        full = np.zeros(4)
+        full[list(face)] = lam
+        n2 = float(full @ G @ full)
+        if n2 < best_n2:
+            best_n2, best_lam = n2, full
+    if active.all():
+        e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
+        vol = float(e1 @ np.cross(e2, e3))
+        if vol != 0:
+            mu = np.array([-Y[0] @ np.cross(e2, e3), e1 @ np.cross(-Y[0], e3), e1 @ np.cross(e2, -Y[0])]) / vol
+            tet = np.r_[1 - mu.sum(), mu]
+            if (tet >= 0).all():
+                return np.zeros(3), tet
+    return best_lam @ Y, best_lam
+
+
+def polytope_box_lower_bound_np(V, centre, R, t, lo, hi, iterations: int = GJK_ITERATIONS) -> float:
+    """NumPy float64 reference of :func:`polytope_box_lower_bound` (same steps, loops)."""
+    V, centre, R, t, lo, hi = (np.asarray(x, np.float64) for x in (V, centre, R, t, lo, hi))
+    if not all(np.isfinite(x).all() for x in (V, R, t, lo, hi)):
+        return math.nan
+
+    u = float(np.finfo(np.float64).eps) / 2
+    v_max = float(np.abs(V).sum(axis=1).max())
+
+    def bound(w):
+        if not w @ w > 0:
+            w = np.array([1.0, 0.0, 0.0])
+        k = int(np.argmax(V @ (R.T @ w)))
+        s = np.where(w > 0, lo, hi) - (R @ V[k] + t)
+        norm = math.sqrt(w @ w)
+        lb = float(w @ s) / norm
+        return lb - 32 * u * (float(np.abs(w) @ np.abs(s)) / norm + abs(lb) + v_max), s
+
+    c = R @ centre + t
+    best, s = bound(np.clip(c, lo, hi) - c)
+    Y = np.zeros((4, 3))
+    Y[0] = s
+    active = np.array([True, False, False, False])
+    w = s
+    for _ in range(iterations):
+        lb, s = bound(w)
+        best = max(best, lb)
+        if active.all():
+            continue
+        slot = int(np.argmax(~active))
+        Y[slot] = s
+        active[slot] = True
+        w, lam = _nearest_in_simplex_np(Y, active)
+        active = lam > 0
+    return best

@@ -1,0 +1,1 @@
+"""What a result becomes: reports, certificates and their checker, explanations, the viewer."""
