@@ -37,7 +37,8 @@ NOT_CODE = ("experiments.fingerprints",)
 """Modules never counted in a closure: this one computes the hashes, it does not produce results
 (changing how it hashes changes every fingerprint anyway)."""
 
-__all__ = ["sha_file", "fingerprint", "code_closure", "code_fingerprint", "normalised_source", "environment"]
+__all__ = ["sha_file", "fingerprint", "code_closure", "code_fingerprint", "module_imports", "normalised_source",
+           "environment"]
 
 
 def sha_file(path: str | Path) -> str:
@@ -102,7 +103,7 @@ def normalised_source(path: Path) -> str:
     return ast.unparse(_strip_docstrings(ast.parse(Path(path).read_text(), filename=str(path))))
 
 
-def _imports(path: Path, name: str) -> set[str]:
+def module_imports(path: Path, name: str) -> set[str]:
     """Modules of ours that ``name`` (at ``path``) imports, anywhere in the file."""
     is_package = path.name == "__init__.py"
     package = name if is_package else name.rpartition(".")[0]
@@ -137,7 +138,7 @@ def code_closure(modules: Sequence[str]) -> list[str]:
         if path is None:
             raise ValueError(f"{m}: not a module of {OWN_PACKAGES}")
         seen.add(m)
-        todo.extend(_imports(path, m) - seen)
+        todo.extend(module_imports(path, m) - seen)
     return sorted(seen)
 
 

@@ -1,8 +1,9 @@
 """The package layout: layers, no import cycle, every module in the README code map (AST only)."""
 
-import ast
 import re
 from pathlib import Path
+
+from experiments.fingerprints import module_imports
 
 ROOT = Path(__file__).resolve().parent.parent
 PKG = ROOT / "larc_jax"
@@ -21,28 +22,10 @@ def _layer(module: str) -> int:
     return LAYERS.index(sub if sub != "data" else "")
 
 
-def _imports(path: Path) -> set[str]:
-    """Modules of larc_jax that ``path`` imports, anywhere in the file (function-local too)."""
-    module = _module(path)
-    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-    out = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom):
-            if node.level:
-                parts = package.split(".")
-                base = ".".join(parts[: len(parts) - node.level + 1])
-                base = f"{base}.{node.module}" if node.module else base
-            else:
-                base = node.module or ""
-            for alias in node.names:
-                sub = f"{base}.{alias.name}"
-                out.add(sub if (ROOT / Path(*sub.split("."))).with_suffix(".py").exists() else base)
-        elif isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-    return {m for m in out if m.startswith("larc_jax.") and m != module}
-
-
-GRAPH = {_module(p): _imports(p) for p in PKG.rglob("*.py")}
+GRAPH = {m: {t for t in module_imports(p, m) if t.startswith("larc_jax.") and t != m}
+         for m, p in ((_module(p), p) for p in PKG.rglob("*.py"))}
+"""Each module of larc_jax -> the modules of larc_jax it imports, anywhere in the file (function-local
+imports too; ``from package import submodule`` counts the submodule)."""
 
 
 def test_every_import_resolves_and_goes_down_the_layers():
