@@ -37,9 +37,9 @@ from .hermite import HermiteSpline, SplineRow, pad_waypoints
 from .interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
 from .leaf import LeafRecord, Stage, box_record, compose, needs_hull, self_record
 from .lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
+from .obstacles import ObstacleSet, stack_scenes
 from .placement import place
 from .robot import Robot
-from .obstacles import ObstacleSet, stack_scenes
 from .scene import Scene
 from .self_collision import SelfPairs, self_stage
 
