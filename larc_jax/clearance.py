@@ -29,9 +29,7 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
-from .lazy_jax import jax, jnp
+from .lazy_jax import jnp
 
 __all__ = ["min_clearance", "min_clearance_np", "BROAD_PHASE_K"]
 
