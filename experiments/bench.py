@@ -137,7 +137,7 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
     traj = rng.integers(0, len(trajs), F)
     depth, index = np.full(F, 6), rng.integers(0, 64, F)
     out = {"bucket_intervals": F, "peak_gflops_nominal": peak_gflops,
-           "boxes_padded_to": int(batch.box_lo.shape[1]), "device": str(jax.devices()[0])}
+           "boxes_padded_to": batch.obstacles.n_items, "device": str(jax.devices()[0])}
     # The kernel certify runs (broad phase, larc_jax.leaf.clearance) and the all-pairs one it falls
     # back to for intervals the broad phase cannot prove.
     for name, broad in (("broad_phase", True), ("all_pairs", False)):

@@ -18,7 +18,8 @@ from larc_jax.enclosure.hull import hull_model
 from larc_jax.enclosure.robot_file import load_robot_file
 from larc_jax.model.hermite import HermiteSpline
 from larc_jax.model.robot import forward_kinematics_np
-from larc_jax.model.scene import Scene, pad_scenes
+from larc_jax.obstacles import stack_scenes
+from larc_jax.model.scene import Scene
 from larc_jax.model.trajectory import Trajectory
 
 
@@ -164,7 +165,7 @@ def test_cascade_certifies_what_the_capsules_do_and_more(dataset, model, larc):
 def test_interval_pairs_matches_reference(dataset, model):
     robot, capsules, hulls = model
     trajs, scenes = dataset
-    lo, hi, mask = pad_scenes(scenes[:10])
+    obstacles = stack_scenes(scenes[:10], np.float64)
     rng = np.random.default_rng(1)
     for k in range(10):
         traj = trajs[k]
@@ -173,7 +174,7 @@ def test_interval_pairs_matches_reference(dataset, model):
         ar, br = rebase_ends(a, b, float(bounds.offset_s))
         with jax.enable_x64(True):
             spline = HermiteSpline.from_waypoints(traj.t - float(bounds.offset_s), traj.q, traj.qd)
-            d = interval_pairs(robot, capsules, hulls, spline, lo[k], hi[k], mask[k], ar, br, MARGIN, bounds)
+            d = interval_pairs(robot, capsules, hulls, spline, obstacles.take(k), ar, br, MARGIN, bounds)
         r = interval_pairs_np(robot, capsules, hulls, traj, scenes[k], a, b, MARGIN, bounds)
         nb = scenes[k].n_boxes
         np.testing.assert_allclose(np.asarray(d.g_capsule)[:, :nb], r.g_capsule[:, :nb], atol=1e-12)

@@ -15,7 +15,8 @@ from larc_jax.engine.certify import certify
 from larc_jax.leaf.interval import interval_clearance, interval_clearance_np, rebase_ends, trajectory_rounding
 from larc_jax.obstacles.geometry import segment_box_distance_np
 from larc_jax.model.hermite import HermiteSpline
-from larc_jax.model.scene import Scene, pad_scenes
+from larc_jax.obstacles import AlignedBoxes, stack_scenes
+from larc_jax.model.scene import Scene
 from larc_jax.model.trajectory import Trajectory
 
 MARGIN = 0.01
@@ -148,7 +149,7 @@ def test_soundness_against_dense_sampling(robot, capsules):
 def test_interval_kernel_matches_reference(dataset, robot, capsules):
     trajs, scenes = dataset
     rng = np.random.default_rng(5)
-    lo, hi, mask = pad_scenes(scenes[:40])
+    obstacles = stack_scenes(scenes[:40], np.float64)
     for k in range(40):
         traj, scene = trajs[k], scenes[k]
         bounds = trajectory_rounding(traj, robot, capsules)
@@ -159,8 +160,8 @@ def test_interval_kernel_matches_reference(dataset, robot, capsules):
                 if rng.random() < 0.2:
                     b = a  # zero-width interval
                 ar, br = rebase_ends(a, b, float(bounds.offset_s))
-                g, guard, c, bx = interval_clearance(robot, capsules, spline, lo[k], hi[k], mask[k], ar, br,
-                                                     MARGIN, bounds)
+                g, guard, c, bx = interval_clearance(robot, capsules, spline, obstacles.take(k), ar, br, MARGIN,
+                                                     bounds)
                 g_np, guard_np, c_np, b_np = interval_clearance_np(robot, capsules, traj, scene, a, b, MARGIN, bounds)
                 assert float(guard) == guard_np == bounds.guard_m[c_np]
                 if scene.n_boxes == 0:
@@ -202,8 +203,8 @@ def test_nan_never_certifies(robot, capsules):
     with jax.enable_x64(True):
         spline = HermiteSpline.from_waypoints(np.array([0.0, 1.0]), bad.q, bad.qd)
         bounds = trajectory_rounding(bad, robot, capsules)
-        g, _, _, _ = interval_clearance(robot, capsules, spline, np.zeros((1, 3)), np.zeros((1, 3)),
-                                        np.array([False]), 0.0, 1.0, MARGIN, bounds)
+        none = AlignedBoxes(np.zeros((1, 3)), np.zeros((1, 3)), np.array([False]))
+        g, _, _, _ = interval_clearance(robot, capsules, spline, none, 0.0, 1.0, MARGIN, bounds)
     assert math.isnan(float(g)) and not float(g) > 0
 
 

@@ -6,8 +6,9 @@ import jax
 import numpy as np
 import pytest
 
-from larc_jax.leaf.clearance import min_clearance, min_clearance_np, segment_box_lower_bound
-from larc_jax.obstacles.geometry import segment_box_distance_np
+from larc_jax.leaf.clearance import min_clearance, min_clearance_np
+from larc_jax.obstacles.geometry import segment_box_distance_np, segment_box_lower_bound
+from larc_jax.obstacles import AlignedBoxes
 
 
 def random_case(rng, S=11, B=5, spread=0.5):
@@ -15,14 +16,14 @@ def random_case(rng, S=11, B=5, spread=0.5):
     p_b = p_a + rng.normal(0, 0.1, (S, 3))
     lo = rng.uniform(-0.6, 0.6, (B, 3))
     hi = lo + rng.uniform(0.0, 0.4, (B, 3))
-    return p_a, p_b, rng.uniform(0.0, 0.08, S), lo, hi, rng.uniform(0.0, 1e-3, B), rng.random(B) < 0.85
+    return p_a, p_b, rng.uniform(0.0, 0.08, S), AlignedBoxes(lo, hi, rng.random(B) < 0.85), rng.uniform(0.0, 1e-3, B)
 
 
 @pytest.mark.parametrize("k", [None, 1, 2, 4])
 def test_min_clearance_matches_all_pairs_reference(k):
     rng = np.random.default_rng(11 + (k or 0))
     cases = [random_case(rng) for _ in range(300)]
-    stacked = [np.stack(x) for x in zip(*cases)]
+    stacked = [jax.tree.map(lambda *x: np.stack(x), *c) for c in zip(*cases)]
     with jax.enable_x64(True):
         g, s, b, exact = (np.asarray(x) for x in jax.jit(jax.vmap(lambda *a: min_clearance(*a, k=k)))(*stacked))
     assert exact.mean() > (0.5 if k == 1 else 0.9)
@@ -38,9 +39,9 @@ def test_min_clearance_matches_all_pairs_reference(k):
 
 def test_no_real_boxes_and_lower_bound_edge_cases():
     rng = np.random.default_rng(3)
-    p_a, p_b, off, lo, hi, offb, _ = random_case(rng)
+    p_a, p_b, off, boxes, offb = random_case(rng)
     with jax.enable_x64(True):
-        g, _, _, exact = min_clearance(p_a, p_b, off, lo, hi, offb, np.zeros(len(lo), bool))
+        g, _, _, exact = min_clearance(p_a, p_b, off, AlignedBoxes(boxes.lo, boxes.hi, np.zeros(len(offb), bool)), offb)
     assert float(g) == np.inf and bool(exact)
     # The AABB bound never exceeds the exact distance: touching, crossing, inside, parallel.
     cases = [([0, 0, 0], [1, 1, 1], [0.5, 0.5, 0.5], [2, 2, 2]),

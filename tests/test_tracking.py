@@ -17,7 +17,8 @@ from larc_jax.enclosure import capsule_segments_np
 from larc_jax.obstacles.geometry import segment_box_distance_np, segment_box_distances
 from larc_jax.model.hermite import HermiteSpline
 from larc_jax.leaf.interval import interval_clearance, interval_clearance_np, rebase_ends, trajectory_rounding
-from larc_jax.model.scene import Scene, pad_scenes
+from larc_jax.obstacles import stack_scenes
+from larc_jax.model.scene import Scene
 from larc_jax.enclosure.tracking import check_tracking_tolerance, parse_tracking_tolerance, tracked_capsules, tracking_radius
 from larc_jax.model.trajectory import Trajectory
 from larc_jax.model.trajectory_files import write_trajectory
@@ -99,7 +100,7 @@ def test_kernel_matches_reference_with_tolerance(dataset, robot, capsules):
     trajs, scenes = dataset
     rng = np.random.default_rng(3)
     caps = tracked_capsules(capsules, rng.uniform(0, 0.03, robot.n_joints))
-    lo, hi, mask = pad_scenes(scenes)
+    obstacles = stack_scenes(scenes, np.float64)
     for k in range(12):
         traj, scene = trajs[k], scenes[k]
         bounds = trajectory_rounding(traj, robot, caps)
@@ -108,7 +109,7 @@ def test_kernel_matches_reference_with_tolerance(dataset, robot, capsules):
             for _ in range(3):
                 a, b = np.sort(rng.uniform(traj.t[0], traj.t[-1], 2))
                 ar, br = rebase_ends(a, b, float(bounds.offset_s))
-                g, guard, c, bx = interval_clearance(robot, caps, spline, lo[k], hi[k], mask[k], ar, br, MARGIN, bounds)
+                g, guard, c, bx = interval_clearance(robot, caps, spline, obstacles.take(k), ar, br, MARGIN, bounds)
                 g_np, guard_np, c_np, b_np = interval_clearance_np(robot, caps, traj, scene, a, b, MARGIN, bounds)
                 assert float(guard) == guard_np
                 if scene.n_boxes:

@@ -1,8 +1,9 @@
 """Host-side batching for the JAX certifiers: padded arrays, size classes, bucketed calls.
 
 A dataset of trajectories (each with its own waypoint count, duration and scene) becomes one
-:class:`Batch`: splines padded to a common knot count, scenes padded to a common box count
-(masked), per-trajectory horizons. :meth:`Batch.evaluate` runs the interval test on any list
+:class:`Batch`: splines padded to a common knot count, scenes stacked into one obstacle set
+padded to a common item count (masked; :func:`~larc_jax.obstacles.stack_scenes`), per-trajectory
+horizons. :meth:`Batch.evaluate` runs the interval test on any list
 of (trajectory, depth, index) intervals in jitted, vmapped calls whose sizes are padded to a
 few buckets, so a process compiles a handful of shapes rather than one per frontier size.
 
@@ -15,7 +16,7 @@ Interval ends are exact dyadic fractions of the horizon (:func:`dyadic_ends`), s
 certifier: neighbours compute their common end from the same fraction, so a cover has no gaps.
 They are computed in each trajectory's own time axis (what a leaf reports) and handed to the
 kernel rebased with outward rounding (:func:`~larc_jax.leaf.interval.rebase_ends`, budget T1).
-Geometry arrays are cast to the geometry dtype (boxes rounded outwards); times, splines and the
+Geometry arrays are cast to the geometry dtype (obstacles rounded outwards); times, splines and the
 per-trajectory rounding bounds are float64.
 """
 
@@ -36,9 +37,10 @@ from ..model.hermite import HermiteSpline, SplineRow, pad_waypoints
 from ..leaf.interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
 from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
 from ..lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
+from ..obstacles import ObstacleSet, stack_scenes
 from ..leaf.placement import place
 from ..model.robot import Robot
-from ..model.scene import Scene, pad_scenes
+from ..model.scene import Scene
 from ..leaf.self_collision import SelfPairs, self_stage
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
@@ -93,32 +95,30 @@ def _call(fn, args, on_compile: Callable[[bool], None] | None):
             on_compile(False)
 
 
-def _intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin, k):
+def _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, k):
     """Evaluate F intervals: interval i belongs to trajectory ``traj[i]`` in scene ``scene[i]``.
     Only ``(g, guard, capsule, box, exact)`` leave the call (XLA drops the record's other fields)."""
 
     def one(t, s, ai, bi):
         spline = SplineRow(splines, t)  # read in place, not copied per interval
         bnd = jax.tree.map(lambda x: x[t], bounds)
-        ev = evaluate_interval(robot, capsules, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd, k)
+        ev = evaluate_interval(robot, capsules, spline, obstacles.take(s), ai, bi, margin, bnd, k)
         return ev.g, ev.guard, ev.capsule, ev.box, ev.exact
 
     return jax.vmap(one)(traj, scene, a, b)
 
 
 @jax.jit
-def _evaluate_intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
-    """The interval test with every capsule-box pair exact."""
-    return _intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin, None)
+def _evaluate_intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin):
+    """The interval test with every capsule-obstacle pair exact."""
+    return _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, None)
 
 
 @jax.jit
-def _evaluate_intervals_broad(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b,
-                              margin):
+def _evaluate_intervals_broad(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin):
     """The interval test through the broad phase (:data:`~larc_jax.leaf.clearance.BROAD_PHASE_K` exact
     pairs per interval); intervals whose ``exact`` is False are evaluated again all-pairs."""
-    return _intervals(robot, capsules, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin,
-                      BROAD_PHASE_K)
+    return _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, BROAD_PHASE_K)
 
 
 _CACHED_CALLS: dict = {}
@@ -138,24 +138,24 @@ def _cached_call(kernel, *args):
 
 
 @jax.jit
-def _interval_pairs(robot, capsules, hulls, splines, box_lo, box_hi, box_mask, bounds, traj, scene, a, b, margin):
+def _interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, traj, scene, a, b, margin):
     """Step 2 of the cascade (larc_jax.leaf.cascade) on F intervals, as ``_evaluate_intervals``: the
     fields of :class:`~larc_jax.leaf.cascade.PairDetails` as a tuple (what the compilation cache keeps)."""
 
     def one(k, s, ai, bi):
         spline = SplineRow(splines, k)
         bnd = jax.tree.map(lambda x: x[k], bounds)
-        d = interval_pairs(robot, capsules, hulls, spline, box_lo[s], box_hi[s], box_mask[s], ai, bi, margin, bnd)
+        d = interval_pairs(robot, capsules, hulls, spline, obstacles.take(s), ai, bi, margin, bnd)
         return d.g_capsule, d.T_part, d.motion_b, d.g_upper
 
     return jax.vmap(one)(traj, scene, a, b)
 
 
 @jax.jit
-def _hull_pairs(hulls, part, T_part, lo, hi, motion_b, margin):
-    """Step 4 of the cascade on T (part, box) pairs."""
-    return jax.vmap(hull_pair_clearance, in_axes=(None, 0, 0, 0, 0, 0, None))(
-        hulls, part, T_part, lo, hi, motion_b, margin)
+def _hull_pairs(hulls, part, T_part, items, motion_b, margin):
+    """Step 4 of the cascade on T (part, obstacle) pairs (``items``: one obstacle per pair)."""
+    return jax.vmap(hull_pair_clearance, in_axes=(None, 0, 0, 0, 0, None))(
+        hulls, part, T_part, items, motion_b, margin)
 
 
 @jax.jit
@@ -197,15 +197,6 @@ def _hulls_geometry(hulls: HullModel, dtype) -> HullModel:
                                motion_a=np.asarray(hulls.motion_a, np.float64))
 
 
-def _boxes_outward(lo: np.ndarray, hi: np.ndarray, dtype):
-    """Box corners in ``dtype``, rounded outwards so the box tested contains the user's (G3)."""
-    lo_g, hi_g = lo.astype(dtype), hi.astype(dtype)
-    inf = np.asarray(np.inf, dtype)
-    lo_g = np.where(lo_g > lo, np.nextafter(lo_g, -inf), lo_g)
-    hi_g = np.where(hi_g < hi, np.nextafter(hi_g, inf), hi_g)
-    return lo_g, hi_g
-
-
 @dataclasses.dataclass
 class Batch:
     """Host-side padded dataset ready for the kernel."""
@@ -216,9 +207,8 @@ class Batch:
     """Splines on rebased knots (float64), padded."""
     bounds: RoundingBounds
     """Per-trajectory rounding bounds, stacked (leading axis = trajectory)."""
-    box_lo: np.ndarray
-    box_hi: np.ndarray
-    box_mask: np.ndarray
+    obstacles: ObstacleSet
+    """Every scene's obstacles, padded to one item count (leading axis = scene), geometry dtype."""
     scene_of: np.ndarray
     t_start: np.ndarray
     """Horizon start per trajectory, in its own time axis, s."""
@@ -231,13 +221,13 @@ class Batch:
     hulls: HullModel | None = None
     """Hull parts for the cascade (larc_jax.leaf.cascade); None: the capsule test alone."""
     self_pairs: SelfPairs | None = None
-    """Capsule pairs of the self test (:mod:`larc_jax.leaf.self_collision`); None: boxes only."""
+    """Capsule pairs of the self test (:mod:`larc_jax.leaf.self_collision`); None: obstacles only."""
     self_skip: np.ndarray | None = None
     """(padded trajectories, P) bool: pairs proven apart for each trajectory (:meth:`SelfPairs.skip_mask`)."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
-        (robot, splines, boxes) are replicated by ``jit``."""
+        (robot, splines, obstacles) are replicated by ``jit``."""
         if len(self.devices) <= 1:
             return arrays
         from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -255,8 +245,8 @@ class Batch:
 
     def _kernel_args(self, traj, a, b):
         ar, br = self._rebased(traj, a, b)
-        return (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi, self.box_mask, self.bounds,
-                traj, self.scene_of[traj], ar, br, self.margin)
+        return (self.robot, self.capsules, self.splines, self.obstacles, self.bounds, traj, self.scene_of[traj], ar,
+                br, self.margin)
 
     def cost_analysis(self, traj, depth, index, broad_phase: bool = True) -> dict:
         """XLA's cost analysis (``flops``, ``bytes accessed``, ...) of the compiled kernel for
@@ -323,13 +313,13 @@ class Batch:
 
     @property
     def use_broad_phase(self) -> bool:
-        """The broad phase pays when a scene has more capsule-box pairs than it evaluates exactly."""
-        return self.capsules.n_capsules * self.box_lo.shape[1] > 2 * BROAD_PHASE_K
+        """The broad phase pays when a scene has more capsule-obstacle pairs than it evaluates exactly."""
+        return self.capsules.n_capsules * self.obstacles.n_items > 2 * BROAD_PHASE_K
 
     def _kernel(self, kernel, on_compile):
         call = kernel if len(self.devices) > 1 else _cached(kernel)
-        return lambda t, sc, x, y: _call(call, (self.robot, self.capsules, self.splines, self.box_lo, self.box_hi,
-                                                self.box_mask, self.bounds, t, sc, x, y, self.margin), on_compile)
+        return lambda t, sc, x, y: _call(call, (self.robot, self.capsules, self.splines, self.obstacles, self.bounds, t,
+                                                sc, x, y, self.margin), on_compile)
 
     def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                          on_compile: Callable[[bool], None] | None = None):
@@ -351,8 +341,8 @@ class Batch:
         hull_call = _hull_pairs if len(self.devices) > 1 else _cached(_hull_pairs)
         d = PairDetails(*self._bucketed(
             lambda t, sc, x, y: _call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
-                                                   self.box_lo, self.box_hi, self.box_mask, self.bounds, t,
-                                                   sc, x, y, self.margin), on_compile),
+                                                   self.obstacles, self.bounds, t, sc, x, y, self.margin),
+                                      on_compile),
             [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
         links = Links.of(self.capsules, self.hulls)
         G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
@@ -362,11 +352,12 @@ class Batch:
         if len(triples):
             i, p, k = triples.T
             sc = self.scene_of[tr[i]]
+            items = self.obstacles.take((sc, k))  # one obstacle per triple
+            leaves, tree = jax.tree.flatten(items)
             g_hull = self._bucketed(
-                lambda pp, T, lo, hi, mb: _call(hull_call, (self.hulls, pp, T, lo, hi, mb, self.margin),
-                                                on_compile),
-                [p, d.T_part[i, p], self.box_lo[sc, k], self.box_hi[sc, k], d.motion_b[i, p]],
-                buckets=CASCADE_BUCKETS)
+                lambda pp, T, mb, *it: _call(hull_call, (self.hulls, pp, T, jax.tree.unflatten(tree, it), mb,
+                                                         self.margin), on_compile),
+                [p, d.T_part[i, p], d.motion_b[i, p], *leaves], buckets=CASCADE_BUCKETS)
             guard_hull = G_p[i, p]
         g, guard, cap, box, _ = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
         return box_record(g, guard, cap, box, Stage.HULL)
@@ -395,15 +386,14 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     unique = list(dict.fromkeys(id(s) for s in scenes))
     scene_list = [next(s for s in scenes if id(s) == u) for u in unique]
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
-    lo, hi, mask = pad_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)))
+    obstacles = stack_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)), dtype)
     with jax.enable_x64(True):
         splines = _call(_build_splines, tuple(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
                         on_compile)
     robot_g, capsules_g = _geometry(robot, capsules, dtype)
-    box_lo, box_hi = _boxes_outward(lo, hi, dtype)
     return Batch(
         robot=robot_g, capsules=capsules_g, splines=splines, bounds=stacked,
-        box_lo=box_lo, box_hi=box_hi, box_mask=mask, scene_of=scene_of,
+        obstacles=obstacles, scene_of=scene_of,
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
         margin=np.asarray(margin, np.float64), dtype=dtype,
         devices=tuple(jax.devices() if devices is None else devices),

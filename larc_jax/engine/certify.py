@@ -39,6 +39,7 @@ from ..io import short_repr
 from ..leaf.record import LeafRecord
 from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
 from ..leaf.interval import geometry_dtype, trajectory_rounding
+from ..obstacles import scene_obstacles
 from .results import DatasetResult, LeafTable
 from ..model.robot import Robot
 from ..run_spec import RunSpec
@@ -154,11 +155,13 @@ def _reference(trajectories, scenes, names: _Names, robot, enc: LeafEnclosures, 
     rows, records = [], []  # (traj, depth, index, a, b) and the LeafRecord of each leaf
     for k, (traj, scene, bnd) in enumerate(zip(trajectories, scenes, bounds)):
         ts, te = float(traj.t[0]), float(traj.t[-1])
+        obstacles = scene_obstacles(scene)
 
         def certify_node(d: int, i: int) -> bool:  # Algorithm 1
             a, b = (float(x) for x in dyadic_ends(ts, te, d, i))
             frontier[k, d] += 1
-            rec = leaf_test_np(robot, enc, traj, scene, a, b, margin, bnd, pairs, None if skips is None else skips[k])
+            rec = leaf_test_np(robot, enc, traj, obstacles, a, b, margin, bnd, pairs,
+                               None if skips is None else skips[k])
             if progress:
                 progress(1)
             passed = bool(rec.stage > 0)

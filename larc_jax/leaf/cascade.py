@@ -8,8 +8,8 @@ of one part against one box is::
 
     g_h = lb(part at q(t_m), box) - (radius_p + b_p(I) + rho) (1 + 2 eps)
 
-with ``lb`` the proven lower bound of :func:`larc_jax.obstacles.polytope.polytope_box_lower_bound` (its
-own rounding already subtracted), ``radius_p`` the padding (plus the containment slack) and
+with ``lb`` the obstacle kind's proven ``polytope_lower_bound`` (:mod:`larc_jax.obstacles`; for a
+box :func:`larc_jax.obstacles.polytope.polytope_box_lower_bound`, its own rounding already subtracted), ``radius_p`` the padding (plus the containment slack) and
 ``b_p(I) = h_cov * sum_j a_pj * (omega_max_j(I) + slack_j)`` the part's motion radius from its
 own motion constants (eq. 6, budget P3 of :mod:`larc_jax.leaf.interval`). The part is placed at the
 same midpoint ``q(t_m)``, with the same covering radius and speed bound, as the capsules: both
@@ -39,7 +39,7 @@ Order of work (all of it deterministic, so every scheduler takes the same decisi
 
 :func:`combine` is step 5 (NumPy, shared by every scheduler); :func:`cascade_np` runs steps 1-5
 on one interval with the NumPy float64 references (:func:`interval_pairs_np`,
-:func:`~larc_jax.obstacles.polytope.polytope_box_lower_bound_np`) for the reference scheduler.
+:func:`hull_pair_clearance_np`) for the reference scheduler. Boxes, here, are any obstacle kind.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel
 from .interval import evaluate_interval, evaluate_interval_np, motion_radii
 from ..lazy_jax import jax, jnp, pytree_dataclass
-from ..obstacles.polytope import polytope_box_lower_bound, polytope_box_lower_bound_np
+from ..obstacles import scene_obstacles
 from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
@@ -75,41 +75,38 @@ class PairDetails:
     """(P, B) upper bound of each part-box hull clearance, m; +inf for padding boxes."""
 
 
-def _point_box_distance(p, lo, hi):
-    gap = jnp.maximum(jnp.maximum(lo - p, p - hi), 0)
-    return jnp.sqrt(jnp.sum(gap * gap, axis=-1))
-
-
 def _shell(radius, motion_b, margin, eps):
     """``(r + b + rho) (1 + 2 eps)``: an upper bound of the sum (budget G4)."""
     return (radius + motion_b + margin) * (1 + 2 * eps)
 
 
-def interval_pairs(robot: Robot, capsules: CapsuleModel, hulls: HullModel, spline, box_lo, box_hi, box_mask,
+def interval_pairs(robot: Robot, capsules: CapsuleModel, hulls: HullModel, spline, obstacles,
                    a, b, margin, bounds) -> PairDetails:
-    """Step 2 on one interval ``[a, b]`` (rebased) of one trajectory (kernel; batch with ``jax.vmap``)."""
-    ev = evaluate_interval(robot, capsules, spline, box_lo, box_hi, box_mask, a, b, margin, bounds)
+    """Step 2 on one interval ``[a, b]`` (rebased) of one trajectory against one scene's obstacle
+    set (kernel; batch with ``jax.vmap``)."""
+    ev = evaluate_interval(robot, capsules, spline, obstacles, a, b, margin, bounds)
     eps = float(jnp.finfo(ev.speed.dtype).eps)
     gdtype = robot.T_parent_joint.dtype
     T = forward_kinematics(robot, ev.q_mid.astype(gdtype))[jnp.asarray(hulls.link_index)][:, :3, :]  # (P, 3, 4)
     motion_b = motion_radii(hulls.motion_a, ev.h_cov, ev.speed)  # eq. 6, the parts' own a_pj
     probes = jnp.einsum("pij,pqj->pqi", T[:, :, :3], hulls.probes.astype(gdtype)) + T[:, None, :, 3]
-    d = _point_box_distance(probes[:, :, None, :], box_lo[None, None], box_hi[None, None])  # (P, Q, B)
+    d = obstacles.point_distances(probes.reshape(-1, 3)).reshape(probes.shape[:2] + (-1,))  # (P, Q, B)
     # An upper bound, used only to skip pairs that cannot pass: no rounding care needed.
     g_upper = d.min(axis=1).astype(motion_b.dtype) - _shell(hulls.radius, motion_b, margin, eps)[:, None]
-    g_upper = jnp.where(box_mask[None, :], g_upper, jnp.inf)
+    g_upper = jnp.where(obstacles.mask[None, :], g_upper, jnp.inf)
     return PairDetails(g_capsule=ev.g_pairs, T_part=T, motion_b=motion_b, g_upper=g_upper)
 
 
-def hull_pair_clearance(hulls: HullModel, part, T_part, lo, hi, motion_b, margin) -> jax.Array:
-    """Step 4 on one (part, box) pair: ``g_h`` of the module docstring (kernel; ``vmap`` it).
+def hull_pair_clearance(hulls: HullModel, part, T_part, item, motion_b, margin) -> jax.Array:
+    """Step 4 on one (part, obstacle) pair: ``g_h`` of the module docstring (kernel; ``vmap`` it).
 
     Args:
-      part: index of the part; T_part: (3, 4) its link's pose at q(t_m) (geometry dtype); lo,
-        hi: (3,) the box; motion_b: the part's motion radius b_p(I), m (float64); margin: rho, m.
+      part: index of the part; T_part: (3, 4) its link's pose at q(t_m) (geometry dtype); item:
+        one obstacle (:meth:`~larc_jax.obstacles.ObstacleSet.take`); motion_b: the part's motion
+        radius b_p(I), m (float64); margin: rho, m.
     """
     eps = float(jnp.finfo(motion_b.dtype).eps)
-    lb = polytope_box_lower_bound(hulls.vertices, part, hulls.centre[part], T_part[:, :3], T_part[:, 3], lo, hi)
+    lb = item.polytope_lower_bound(hulls.vertices, part, hulls.centre[part], T_part[:, :3], T_part[:, 3])
     return lb.astype(motion_b.dtype) - _shell(hulls.radius[part], motion_b, margin, eps)
 
 
@@ -118,34 +115,35 @@ def hull_pair_clearance(hulls: HullModel, part, T_part, lo, hi, motion_b, margin
 # ----------------------------------------------------------------------------------------------
 
 
-def interval_pairs_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, traj, scene, a: float, b: float,
-                      margin: float, bounds, ev=None) -> PairDetails:
+def interval_pairs_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, traj, obstacles, a: float,
+                      b: float, margin: float, bounds, ev=None) -> PairDetails:
     """NumPy float64 reference of :func:`interval_pairs` on the leaf ``[a, b]`` in the
-    trajectory's own time axis (``traj``: a Trajectory, ``scene``: a Scene, ``bounds``:
+    trajectory's own time axis (``traj``: a Trajectory, ``obstacles``: an obstacle set or a Scene
+    (:func:`~larc_jax.obstacles.scene_obstacles`), ``bounds``:
     :func:`~larc_jax.leaf.interval.trajectory_rounding`; ``ev``: the leaf's
     :func:`~larc_jax.leaf.interval.evaluate_interval_np`, if computed)."""
-    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bounds)
+    obstacles = scene_obstacles(obstacles)
+    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, obstacles, a, b, margin, bounds)
     eps = float(np.finfo(np.float64).eps)
     T_all = forward_kinematics_np(robot, ev.q_mid)
     T = np.stack([T_all[li][:3, :] for li in hulls.link_index])
     motion_b = motion_radii(np.asarray(hulls.motion_a, np.float64), ev.h_cov, np.asarray(ev.speed, np.float64))
-    U = np.full((hulls.n_parts, max(scene.n_boxes, 1)), np.inf)
+    U = np.full((hulls.n_parts, max(obstacles.n_items, 1)), np.inf)
     probes = np.asarray(hulls.probes, np.float64)
     radius = np.asarray(hulls.radius, np.float64)
     for p in range(hulls.n_parts):
         world = probes[p] @ T[p, :, :3].T + T[p, :, 3]
-        for k in range(scene.n_boxes):
-            gap = np.maximum(np.maximum(scene.lo[k] - world, world - scene.hi[k]), 0)
-            U[p, k] = np.sqrt((gap * gap).sum(axis=1)).min() - _shell(radius[p], motion_b[p], margin, eps)
+        for k in (k for k in range(obstacles.n_items) if obstacles.mask[k]):
+            U[p, k] = obstacles.take(k).point_distance_np(world).min() - _shell(radius[p], motion_b[p], margin, eps)
     return PairDetails(g_capsule=np.asarray(ev.g_pairs, np.float64), T_part=T, motion_b=motion_b, g_upper=U)
 
 
-def hull_pair_clearance_np(hulls: HullModel, part: int, T_part, lo, hi, motion_b: float, margin: float) -> float:
-    """NumPy float64 reference of :func:`hull_pair_clearance`."""
+def hull_pair_clearance_np(hulls: HullModel, part: int, T_part, item, motion_b: float, margin: float) -> float:
+    """NumPy float64 reference of :func:`hull_pair_clearance` (``item``: one obstacle)."""
     eps = float(np.finfo(np.float64).eps)
     V = np.asarray(hulls.vertices[part], np.float64)
     T_part = np.asarray(T_part, np.float64)
-    lb = polytope_box_lower_bound_np(V, np.asarray(hulls.centre[part]), T_part[:, :3], T_part[:, 3], lo, hi)
+    lb = item.polytope_lower_bound_np(V, np.asarray(hulls.centre[part]), T_part[:, :3], T_part[:, 3])
     return lb - _shell(float(hulls.radius[part]), motion_b, margin, eps)
 
 
@@ -241,19 +239,20 @@ def combine(links: Links, g_capsule: np.ndarray, guard_capsule: np.ndarray, trie
     return g, guard, capsule, box, g > guard
 
 
-def cascade_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, links: Links, traj, scene, a: float,
+def cascade_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, links: Links, traj, obstacles, a: float,
                b: float, margin: float, bounds, ev=None):
     """Steps 1-5 on one leaf ``[a, b]`` (the trajectory's own time axis) with the NumPy
     references: ``(g, guard, capsule, box, stage)``; ``ev``: the leaf's capsule test
     (:func:`~larc_jax.leaf.interval.evaluate_interval_np`), computed if None."""
-    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, scene, a, b, margin, bounds)
+    obstacles = scene_obstacles(obstacles)
+    ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, obstacles, a, b, margin, bounds)
     if ev.g > ev.guard or math.isnan(ev.g):
         return ev.g, ev.guard, ev.capsule, ev.box, int(ev.g > ev.guard)
-    d = interval_pairs_np(robot, capsules, hulls, traj, scene, a, b, margin, bounds, ev)
+    d = interval_pairs_np(robot, capsules, hulls, traj, obstacles, a, b, margin, bounds, ev)
     G_c = np.asarray(bounds.guard_m, np.float64)
     G_p = np.asarray(bounds.hull_guard_m, np.float64)
     tried, triples = select_pairs(links, (d.g_capsule - G_c[:, None])[None], (d.g_upper - G_p[:, None])[None])
-    g_hull = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], scene.lo[k], scene.hi[k], d.motion_b[p], margin)
+    g_hull = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], obstacles.take(k), d.motion_b[p], margin)
                        for _, p, k in triples])
     g, guard, c, bx, passed = combine(links, d.g_capsule[None], G_c[None], tried, triples, g_hull,
                                       G_p[triples[:, 1]] if len(triples) else np.zeros(0))

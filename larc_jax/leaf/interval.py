@@ -106,9 +106,9 @@ import numpy as np
 from ..enclosure.capsule import CapsuleModel
 from ..errors import LarcInputError
 from .clearance import min_clearance
-from ..obstacles.geometry import segment_box_distance, segment_box_distance_np
 from ..model.hermite import HermiteSpline
 from ..lazy_jax import jax, jnp, pytree_dataclass
+from ..obstacles import scene_obstacles
 from .placement import Placement, motion_radii, place, place_np
 from ..model.robot import JointType, Robot
 
@@ -337,8 +337,7 @@ class IntervalEval:
     with ``k=None``)."""
 
 
-def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSpline,
-                      box_lo: jax.Array, box_hi: jax.Array, box_mask: jax.Array,
+def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSpline, obstacles,
                       a: jax.Array, b: jax.Array, margin: jax.Array, bounds: RoundingBounds,
                       k: int | None = None) -> IntervalEval:
     """The interval test on one interval ``[a, b]`` (rebased, T1) of one trajectory (eq. 4).
@@ -347,29 +346,28 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
       robot, capsules: geometry arrays in the geometry dtype, except ``capsules.radius`` and
         ``capsules.motion_a`` (float64).
       spline: one trajectory's Hermite curve on rebased knots (float64).
-      box_lo, box_hi: (B, 3) boxes, m, in the geometry dtype; box_mask: (B,) which are real.
+      obstacles: one scene's obstacle set (:class:`~larc_jax.obstacles.ObstacleSet`, B items) in
+        the geometry dtype.
       a, b: interval ends, s (``a <= b``); margin: rho, m; bounds: :func:`trajectory_rounding`.
       k: static; ``None``: every capsule-box pair gets the exact distance; an int: a sound
         broad phase picks the ``k`` most threatening pairs (:func:`~larc_jax.leaf.clearance.min_clearance`)
         and ``exact`` says whether the result is certainly the all-pairs one.
     """
-    return evaluate_placed(place(robot, capsules, spline, a, b, bounds), capsules, box_lo, box_hi, box_mask,
-                           margin, bounds, k)
+    return evaluate_placed(place(robot, capsules, spline, a, b, bounds), capsules, obstacles, margin, bounds, k)
 
 
-def evaluate_placed(pl: Placement, capsules: CapsuleModel, box_lo, box_hi, box_mask, margin, bounds,
+def evaluate_placed(pl: Placement, capsules: CapsuleModel, obstacles, margin, bounds,
                     k: int | None = None) -> IntervalEval:
     """The capsule-box test (eq. 7) of :func:`evaluate_interval` on an interval already placed
     (:func:`~larc_jax.leaf.placement.place`): the capsule stage of the leaf test."""
     eps = float(jnp.finfo(pl.q_mid.dtype).eps)
     eps_g = float(jnp.finfo(pl.p_world_a.dtype).eps)
     p_world_a, p_world_b, motion_b = pl.p_world_a, pl.p_world_b, pl.motion_b
-    per_box = jax.vmap(segment_box_distance, in_axes=(None, None, 0, 0))
-    dist = jax.vmap(per_box, in_axes=(0, 0, None, None))(p_world_a, p_world_b, box_lo, box_hi)
+    dist = obstacles.segment_distances(p_world_a, p_world_b)
     dist = dist.astype(pl.q_mid.dtype) * (1 - K_DIST_REL * eps_g)  # G2
     shell = (capsules.radius + motion_b + margin) * (1 + 2 * eps)  # G4
-    g_cb = jnp.where(box_mask[None, :], dist - shell[:, None], jnp.inf)  # eq. 7 (unused outputs cost nothing)
-    n_boxes = box_lo.shape[0]
+    g_cb = jnp.where(obstacles.mask[None, :], dist - shell[:, None], jnp.inf)  # eq. 7 (unused outputs cost nothing)
+    n_boxes = obstacles.n_items
     if k is None:
         flat = jnp.argmin(g_cb - bounds.guard_m[:, None])
         capsule, box = flat // n_boxes, flat % n_boxes
@@ -378,7 +376,7 @@ def evaluate_placed(pl: Placement, capsules: CapsuleModel, box_lo, box_hi, box_m
         # The same g_lk (eq. 7, G2, G4) for the chosen pair; the bounds of the others are
         # monotone images of a distance lower bound (larc_jax.leaf.clearance).
         g_pick, capsule, box, exact = min_clearance(
-            p_world_a, p_world_b, shell, box_lo, box_hi, jnp.zeros(n_boxes, shell.dtype), box_mask, k,
+            p_world_a, p_world_b, shell, obstacles, jnp.zeros(n_boxes, shell.dtype), k,
             dist_scale=1 - K_DIST_REL * eps_g, guard_seg=bounds.guard_m)
     g = jnp.where(pl.finite, g_pick, jnp.nan)  # NaN never certifies
     return IntervalEval(g=g, guard=bounds.guard_m[capsule], capsule=capsule, box=box, t_mid=pl.t_mid, h=pl.h,
@@ -386,34 +384,37 @@ def evaluate_placed(pl: Placement, capsules: CapsuleModel, box_lo, box_hi, box_m
                         p_world_a=p_world_a, p_world_b=p_world_b, g_pairs=g_cb, speed=pl.speed, exact=exact)
 
 
-def interval_clearance(robot, capsules, spline, box_lo, box_hi, box_mask, a, b, margin, bounds):
+def interval_clearance(robot, capsules, spline, obstacles, a, b, margin, bounds):
     """``(g, guard, capsule, box)`` of :func:`evaluate_interval`."""
-    ev = evaluate_interval(robot, capsules, spline, box_lo, box_hi, box_mask, a, b, margin, bounds)
+    ev = evaluate_interval(robot, capsules, spline, obstacles, a, b, margin, bounds)
     return ev.g, ev.guard, ev.capsule, ev.box
 
 
-def evaluate_interval_np(robot: Robot, capsules: CapsuleModel, traj, scene, t0: float, t1: float,
+def evaluate_interval_np(robot: Robot, capsules: CapsuleModel, traj, obstacles, t0: float, t1: float,
                          margin: float, bounds: RoundingBounds | None = None) -> IntervalEval:
     """NumPy float64 reference of :func:`evaluate_interval` on the leaf ``[t0, t1]`` given in the
-    trajectory's own time axis (``traj``: a :class:`~larc_jax.model.trajectory.Trajectory`, ``scene``:
-    a :class:`~larc_jax.model.scene.Scene`; ``bounds``: :func:`trajectory_rounding`, computed if None)."""
+    trajectory's own time axis (``traj``: a :class:`~larc_jax.model.trajectory.Trajectory`,
+    ``obstacles``: an obstacle set or a :class:`~larc_jax.model.scene.Scene`, :func:`~larc_jax.obstacles.scene_obstacles`;
+    ``bounds``: :func:`trajectory_rounding`, computed if None)."""
     if bounds is None:
         bounds = trajectory_rounding(traj, robot, capsules)
     a, b = (float(x) for x in rebase_ends(t0, t1, float(bounds.offset_s)))
-    return evaluate_placed_np(place_np(robot, capsules, traj, a, b, bounds), capsules, scene, margin, bounds)
+    return evaluate_placed_np(place_np(robot, capsules, traj, a, b, bounds), capsules, obstacles, margin, bounds)
 
 
-def evaluate_placed_np(pl: Placement, capsules: CapsuleModel, scene, margin: float, bounds) -> IntervalEval:
-    """NumPy float64 twin of :func:`evaluate_placed` (``scene``: a :class:`~larc_jax.model.scene.Scene`)."""
+def evaluate_placed_np(pl: Placement, capsules: CapsuleModel, obstacles, margin: float, bounds) -> IntervalEval:
+    """NumPy float64 twin of :func:`evaluate_placed` (``obstacles``: an obstacle set, or a
+    :class:`~larc_jax.model.scene.Scene`, :func:`~larc_jax.obstacles.scene_obstacles`)."""
+    obstacles = scene_obstacles(obstacles)
     p_a, p_b, motion_b = pl.p_world_a, pl.p_world_b, pl.motion_b
     radius = np.asarray(capsules.radius, np.float64)
     guard = np.asarray(bounds.guard_m, np.float64)
     best, pair, g = math.inf, (0, 0), math.inf
-    g_pairs = np.full((capsules.n_capsules, max(scene.n_boxes, 1)), np.inf)
+    g_pairs = np.full((capsules.n_capsules, max(obstacles.n_items, 1)), np.inf)
     for c in range(capsules.n_capsules):
         shell = (radius[c] + motion_b[c] + margin) * (1 + 2 * _EPS64)
-        for k in range(scene.n_boxes):
-            dist = segment_box_distance_np(p_a[c], p_b[c], scene.lo[k], scene.hi[k]) * (1 - K_DIST_REL * _EPS64)
+        for k in (k for k in range(obstacles.n_items) if obstacles.mask[k]):
+            dist = obstacles.take(k).segment_distance_np(p_a[c], p_b[c]) * (1 - K_DIST_REL * _EPS64)
             g_pairs[c, k] = dist - shell
             excess = (dist - shell) - guard[c]
             if excess < best or (math.isnan(excess) and not math.isnan(best)):
@@ -424,7 +425,7 @@ def evaluate_placed_np(pl: Placement, capsules: CapsuleModel, scene, margin: flo
                         p_world_a=p_a, p_world_b=p_b, g_pairs=g_pairs, speed=pl.speed, exact=True)
 
 
-def interval_clearance_np(robot, capsules, traj, scene, t0: float, t1: float, margin: float, bounds=None):
+def interval_clearance_np(robot, capsules, traj, obstacles, t0: float, t1: float, margin: float, bounds=None):
     """``(g, guard, capsule, box)`` of :func:`evaluate_interval_np`."""
-    ev = evaluate_interval_np(robot, capsules, traj, scene, t0, t1, margin, bounds)
+    ev = evaluate_interval_np(robot, capsules, traj, obstacles, t0, t1, margin, bounds)
     return ev.g, ev.guard, ev.capsule, ev.box

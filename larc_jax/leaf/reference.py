@@ -28,6 +28,7 @@ from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel, hull_model
 from .interval import evaluate_placed_np, rebase_ends
 from .record import LeafRecord, Stage, box_record, compose, needs_hull
+from ..obstacles import scene_obstacles
 from .placement import place_np
 from ..model.robot import Robot
 from .self_collision import SelfPairs, self_stage_np
@@ -63,19 +64,21 @@ def leaf_enclosures(robot: Robot, capsules: CapsuleModel, enclosure: str, delta=
     return LeafEnclosures(capsules=tracked_capsules(capsules, delta), hulls=hulls, links=links)
 
 
-def leaf_test_np(robot: Robot, enc: LeafEnclosures, traj, scene, t0: float, t1: float, margin: float, bounds,
+def leaf_test_np(robot: Robot, enc: LeafEnclosures, traj, obstacles, t0: float, t1: float, margin: float, bounds,
                  pairs: SelfPairs | None = None, skip=None) -> LeafRecord:
     """The :class:`~larc_jax.leaf.record.LeafRecord` of the leaf ``[t0, t1]`` (the trajectory's own time
-    axis): placed once, its stages composed by :func:`~larc_jax.leaf.record.compose` (as the batched
+    axis) against ``obstacles`` (an obstacle set, or a Scene: :func:`~larc_jax.obstacles.scene_obstacles`):
+    placed once, its stages composed by :func:`~larc_jax.leaf.record.compose` (as the batched
     schedulers do); ``pairs``, ``skip``: the self test's pairs and the ones proven apart."""
     capsules = enc.capsules
+    obstacles = scene_obstacles(obstacles)
     a, b = (float(x) for x in rebase_ends(t0, t1, float(bounds.offset_s)))
     placed = place_np(robot, capsules, traj, a, b, bounds)
-    ev = evaluate_placed_np(placed, capsules, scene, margin, bounds)
+    ev = evaluate_placed_np(placed, capsules, obstacles, margin, bounds)
     record = box_record(ev.g, ev.guard, ev.capsule, ev.box, Stage.CAPSULE)
     self_test = None if pairs is None else self_stage_np(placed, capsules.radius, bounds, pairs, skip)
     if enc.links is not None and needs_hull(record, self_test):
-        g, guard, cap, box, _ = cascade_np(robot, capsules, enc.hulls, enc.links, traj, scene, t0, t1, margin, bounds,
-                                           ev)
+        g, guard, cap, box, _ = cascade_np(robot, capsules, enc.hulls, enc.links, traj, obstacles, t0, t1, margin,
+                                           bounds, ev)
         record = box_record(g, guard, cap, box, Stage.HULL)
     return compose(record, self_test)

@@ -53,6 +53,10 @@ __all__ = [
     "segment_box_distance",
     "segment_box_distance_np",
     "segment_box_distances",
+    "segment_box_lower_bound",
+    "segment_box_lower_bound_np",
+    "point_box_distance",
+    "point_box_distance_np",
 ]
 
 
@@ -159,6 +163,52 @@ def segment_box_distance_np(p0, p1, lo, hi) -> float:
             t = float(d[act] @ e[act]) / a
             best = min(best, f(min(max(t, u), v)))
     return math.sqrt(best)
+
+
+def segment_box_lower_bound(p0, p1, lo, hi) -> jax.Array:
+    """A cheap lower bound on ``dist(segment [p0, p1], box [lo, hi])`` (the broad phase of
+    :mod:`larc_jax.clearance`), valid for the numbers as computed: the gap between the segment's
+    axis-aligned bounding box and the box (every point of the segment lies in its AABB), lowered
+    by a bound on its rounding error."""
+    dtype = jnp.result_type(p0, p1, lo, hi, 0.0)
+    eps = jnp.finfo(dtype).eps
+    f = jnp.zeros((), dtype)
+    scale = jnp.zeros((), dtype)
+    for i in range(3):
+        a, b, l, h = p0[i].astype(dtype), p1[i].astype(dtype), lo[i].astype(dtype), hi[i].astype(dtype)
+        gap = jnp.maximum(jnp.maximum(l - jnp.maximum(a, b), jnp.minimum(a, b) - h), 0)
+        f = f + gap * gap
+        scale = jnp.maximum(scale, jnp.maximum(jnp.maximum(jnp.abs(a), jnp.abs(b)), jnp.maximum(jnp.abs(l), jnp.abs(h))))
+    # Each gap is one rounded subtraction (error <= eps * scale); the sum of squares and the
+    # square root add a few relative eps. Lowering by 8 eps (1 + scale) (1 + the bound) is a
+    # bound on the total, so the result never exceeds the exact AABB distance.
+    bound = jnp.sqrt(f)
+    return bound - 8 * eps * (1 + scale) * (1 + bound)
+
+
+def segment_box_lower_bound_np(p0, p1, lo, hi) -> float:
+    """Float64 NumPy twin of :func:`segment_box_lower_bound` (the same bound, vectorised over
+    the three axes)."""
+    p0, p1, lo, hi = (np.asarray(v, dtype=np.float64).reshape(3) for v in (p0, p1, lo, hi))
+    eps = float(np.finfo(np.float64).eps)
+    gap = np.maximum(np.maximum(lo - np.maximum(p0, p1), np.minimum(p0, p1) - hi), 0.0)
+    scale = float(np.max(np.abs(np.stack([p0, p1, lo, hi]))))
+    bound = math.sqrt(float(gap @ gap))
+    return bound - 8 * eps * (1 + scale) * (1 + bound)
+
+
+def point_box_distance(p, lo, hi) -> jax.Array:
+    """Distance from points ``p`` (..., 3) to the box ``[lo, hi]``, m (no rounding care: the
+    cascade uses it only for an upper bound that skips work, :mod:`larc_jax.cascade`)."""
+    gap = jnp.maximum(jnp.maximum(lo - p, p - hi), 0)
+    return jnp.sqrt(jnp.sum(gap * gap, axis=-1))
+
+
+def point_box_distance_np(p, lo, hi) -> np.ndarray:
+    """Float64 NumPy twin of :func:`point_box_distance` (points (..., 3))."""
+    p, lo, hi = (np.asarray(v, np.float64) for v in (p, lo, hi))
+    gap = np.maximum(np.maximum(lo - p, p - hi), 0)
+    return np.sqrt((gap * gap).sum(axis=-1))
 
 
 @lazy_jit

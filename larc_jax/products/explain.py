@@ -30,8 +30,8 @@ from .explain_draw import DecidingPair, DecidingPart, Explanation, describe_leaf
 from ..leaf.interval import evaluate_interval_np, trajectory_rounding
 from ..leaf.record import LeafRecord
 from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
+from ..obstacles import scene_obstacles
 from ..leaf.placement import motion_radii
-from ..obstacles.polytope import polytope_box_lower_bound_np
 from ..engine.results import Leaf, TrajectoryResult
 from ..model.robot import Robot
 from ..run_spec import RunSpec
@@ -139,18 +139,19 @@ def _deciding_part(robot: Robot, enc: LeafEnclosures, traj, scene: Scene, leaf: 
     k = int(record.box)
     if enc.links is None or not 0 <= k < scene.n_boxes or not math.isfinite(record.clearance_m):
         return None
-    hulls, lo, hi = enc.hulls, scene.lo[k], scene.hi[k]
+    hulls, lo, hi = enc.hulls, scene.lo[k], scene.hi[k]  # drawn; clearances through the protocol:
+    item = scene_obstacles(scene).take(k)
     on_link = np.flatnonzero(enc.links.of_part == enc.links.of_capsule[int(record.capsule)])
     if not len(on_link):
         return None
     d = interval_pairs_np(robot, enc.capsules, hulls, traj, scene, leaf.t0, leaf.t1, margin, bounds, ev)
-    g = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], lo, hi, d.motion_b[p], margin) for p in on_link])
+    g = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], item, d.motion_b[p], margin) for p in on_link])
     guard = np.asarray(bounds.hull_guard_m, np.float64)[on_link]
     best = int(np.argmin(g - guard))
     if not (g[best] == record.clearance_m and guard[best] == record.guard_m):
         return None  # the capsules decided the worst (link, box) pair
     p, T = int(on_link[best]), np.asarray(d.T_part[on_link[best]], np.float64)
-    lb = polytope_box_lower_bound_np(hulls.vertices[p], hulls.centre[p], T[:, :3], T[:, 3], lo, hi)
+    lb = item.polytope_lower_bound_np(hulls.vertices[p], hulls.centre[p], T[:, :3], T[:, 3])
     placed = np.asarray(hulls.vertices[p][: hulls.n_vertices[p]], np.float64) @ T[:, :3].T + T[:, 3]
     return DecidingPart(index=p, name=hulls.names[p], vertices_m=placed, radius_m=float(hulls.radius[p]),
                         motion_b_m=float(d.motion_b[p]), lower_bound_m=float(lb), reach_m=float(lb - g[best]),
