@@ -390,6 +390,7 @@ def stage_certify(plan: Plan) -> None:
 
     import larc_jax as lj
     from larc_jax.enclosure.robot_file import load_robot_file
+    from larc_jax.engine.results import STAGES
 
     frames = []
     for name, enclosure, stated, depth in CONFIGS:
@@ -412,7 +413,7 @@ def stage_certify(plan: Plan) -> None:
             "min_clearance_m": df["min_clearance_m"],
             "worst_capsule": caps[np.where(worst >= 0, lv.capsule[worst] + 1, 0)],
             "worst_link": [links.get(c, "") for c in caps[np.where(worst >= 0, lv.capsule[worst] + 1, 0)]],
-            "worst_stage": np.array(lj.results.STAGES, dtype=object)[np.where(worst >= 0, lv.stage[worst], 0)],
+            "worst_stage": np.array(STAGES, dtype=object)[np.where(worst >= 0, lv.stage[worst], 0)],
             "hull_leaves": np.bincount(lv.traj[lv.stage == 2], minlength=len(trajs)),
             "blocked_capsule": df["blocked_capsule"], "blocked_box": df["blocked_box"],
             "first_blocked_row": first,
