@@ -28,6 +28,7 @@ __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
     "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport", "view",
     "RunSpec", "fit_robot_file", "parse_hold", "parse_joints", "parse_package_dirs",
+    "ObstacleSet", "AlignedBoxes", "scene_obstacles",
 ]
 
 _loaded = False
@@ -51,6 +52,7 @@ def _load() -> None:
         verify_containment,
     )
     from .errors import LarcInputError
+    from .obstacles import AlignedBoxes, ObstacleSet, scene_obstacles
     from .obstacles.geometry import segment_box_distance, segment_box_distances
     from .model.hermite import HermiteSpline, speed_max
     from .leaf.interval import IntervalEval, evaluate_interval, interval_clearance

@@ -112,3 +112,23 @@ def test_env_var_resolution(monkeypatch, tmp_path):
     monkeypatch.setenv("LARC_PIPER_DESCRIPTION", str(tmp_path))
     with pytest.raises(LarcInputError, match="LARC_PIPER_DESCRIPTION"):
         piper_description_dir()
+
+
+def test_one_urdf_parse_per_robot_load(piper_dir, tmp_path, monkeypatch):
+    """Loading a robot and reading every link's collision geometry (what fitting and the hull
+    stage do) parses the URDF once; editing the file makes the next load parse it again."""
+    from larc_jax.enclosure.meshes import collision_geometry, link_elements, links_with_geometry
+
+    urdf = _copy_description(piper_dir, tmp_path)  # a new path: nothing cached for it yet
+    parses = []
+    real_load = yourdfpy.URDF.load
+    monkeypatch.setattr(yourdfpy.URDF, "load", lambda *a, **k: parses.append(a) or real_load(*a, **k))
+    rob = load_robot(urdf, held_joint_values={"joint7": 0.0}, stated_joints=["joint7"])
+    for link in links_with_geometry(rob):
+        assert link_elements(rob, link).size > 0
+    collision_geometry(rob)
+    load_robot(urdf)  # another robot from the same file: the parse is shared
+    assert len(parses) == 1
+    urdf.write_text(urdf.read_text().replace("</robot>", "<!-- edited --></robot>"))
+    load_robot(urdf)
+    assert len(parses) == 2

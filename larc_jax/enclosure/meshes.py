@@ -79,19 +79,15 @@ def _primitive_vertices(geometry) -> np.ndarray | None:
     return None
 
 
-@functools.lru_cache(maxsize=8)
-def _model_cached(urdf_path: str, stamp: tuple, package_dirs: tuple):
-    return load_urdf_model(urdf_path, dict(package_dirs))
-
-
 def _file_stamp(path: str | Path) -> tuple:
     st = os.stat(path)
     return (str(path), st.st_size, st.st_mtime_ns)
 
 
 def robot_urdf_model(robot: Robot):
-    """The parsed URDF of ``robot`` (cached; re-parsed if the file changed)."""
-    return _model_cached(robot.urdf_path, _file_stamp(robot.urdf_path), tuple(robot.package_dirs))
+    """The parsed URDF of ``robot``: the parse :func:`~larc_jax.model.urdf.load_robot` made
+    (:func:`~larc_jax.model.urdf.load_urdf_model` caches it; re-parsed if the file changed)."""
+    return load_urdf_model(robot.urdf_path, dict(robot.package_dirs))
 
 
 @functools.lru_cache(maxsize=256)

@@ -24,7 +24,7 @@ from ..leaf.record import LeafColumn, Stage
 if TYPE_CHECKING:
     from ..run_spec import RunSpec
 
-__all__ = ["Leaf", "LeafTable", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS", "STAGES"]
+__all__ = ["Leaf", "LeafTable", "RunAssumptions", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS", "STAGES"]
 
 STAGES = tuple(s.label for s in (Stage.NONE, Stage.CAPSULE, Stage.HULL))
 """Which test passed a leaf, by code (:class:`~larc_jax.leaf.record.Stage`): 0 none (not certified), 1
@@ -100,8 +100,33 @@ class LeafTable:
         return LeafTable(**{k: v[order] for k, v in cols.items()})
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RunAssumptions:
+    """What a run assumed, as its results (:class:`TrajectoryResult`, :class:`DatasetResult`)
+    carry it: keyword-only fields, after each result's own."""
+
+    excluded_links: tuple[str, ...] = ()
+    """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
+    enclosure: str = "capsules"
+    """``capsules`` or ``hull`` (the cascade of :mod:`larc_jax.leaf.cascade`): which enclosures
+    the certificate used."""
+    tracking_tolerance: tuple[tuple[str, float], ...] = ()
+    """(active joint, delta_j) the certificate allows as tracking error, rad or m
+    (:mod:`larc_jax.enclosure.tracking`); empty: it covers the planned trajectory only."""
+    self_margin_m: float | None = None
+    """With the self-collision test (:mod:`larc_jax.leaf.self_collision`): its margin rho_self, m;
+    None: the certificate says nothing about self-collision."""
+    self_skipped: tuple[tuple[str, str, str], ...] = ()
+    """With the self-collision test: the link pairs not checked, and why."""
+    spec: "RunSpec | None" = None
+    """The :class:`~larc_jax.run_spec.RunSpec` that produced the result (its model fields those
+    of the robot and capsules certified; ``explain`` re-evaluates with it); None for a result
+    built by hand. The loose fields (``method``, ``margin_m``...) are its values as the result's
+    readers take them."""
+
+
 @dataclasses.dataclass(frozen=True)
-class TrajectoryResult:
+class TrajectoryResult(RunAssumptions):
     id: str
     method: str
     certified: bool
@@ -122,21 +147,6 @@ class TrajectoryResult:
     the one it was compared against."""
     time_offset_s: float = 0.0
     """Offset subtracted (exactly) from every time before evaluation (budget T1), s."""
-    excluded_links: tuple[str, ...] = ()
-    """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
-    enclosure: str = "capsules"
-    """``capsules`` or ``hull`` (the cascade): which enclosures the certificate used."""
-    tracking_tolerance: tuple[tuple[str, float], ...] = ()
-    """(active joint, delta_j) the certificate allows as tracking error, rad or m
-    (:mod:`larc_jax.enclosure.tracking`); empty: it covers the planned trajectory only."""
-    self_margin_m: float | None = None
-    """With the self-collision test (:mod:`larc_jax.leaf.self_collision`): its margin rho_self, m;
-    None: the certificate says nothing about self-collision."""
-    self_skipped: tuple[tuple[str, str, str], ...] = ()
-    """With the self-collision test: the link pairs not checked, and why."""
-    spec: "RunSpec | None" = None
-    """The run spec of the :class:`DatasetResult` this comes from (``explain`` re-evaluates with it)."""
-
     @property
     def first_inconclusive(self) -> Leaf | None:
         bad = [leaf for leaf in self.leaves if not leaf.certified]
@@ -144,7 +154,7 @@ class TrajectoryResult:
 
 
 @dataclasses.dataclass(frozen=True)
-class DatasetResult:
+class DatasetResult(RunAssumptions):
     """Results of one certification call, columnar (module docstring)."""
 
     method: str
@@ -175,28 +185,12 @@ class DatasetResult:
     compile_time_s: float = 0.0
     """Of ``wall_time_s``, seconds JAX spent tracing, lowering and compiling kernels (or loading
     them from the persistent cache, :mod:`larc_jax.compilation`)."""
-    excluded_links: tuple[str, ...] = ()
-    """Links left out of the certificate (:meth:`~larc_jax.enclosure.CapsuleModel.without_links`)."""
-    enclosure: str = "capsules"
-    """``capsules`` or ``hull`` (the cascade of larc_jax.leaf.cascade)."""
     held_joints: tuple = ()
     """What the certificate assumes about every held joint (the gripper): ``(joint, state, lo,
     hi)`` with state ``stated`` (held at lo == hi, as the user said), ``stroke`` (anywhere in
     [lo, hi]: enclosed over the whole stroke) or ``held`` (a held revolute joint, at lo == hi)."""
     dtype: str = "float64"
     """Geometry dtype of the run (``certify(dtype=...)``; the guard accounts for it)."""
-    tracking_tolerance: tuple[tuple[str, float], ...] = ()
-    """(active joint, delta_j) the certificate allows as tracking error, rad or m
-    (:mod:`larc_jax.enclosure.tracking`); empty: it covers the planned trajectory only."""
-    self_margin_m: float | None = None
-    """With the self-collision test (:mod:`larc_jax.leaf.self_collision`): its margin rho_self, m;
-    None: the certificate says nothing about self-collision."""
-    self_skipped: tuple[tuple[str, str, str], ...] = ()
-    """With the self-collision test: the link pairs not checked, and why."""
-    spec: "RunSpec | None" = None
-    """The :class:`~larc_jax.run_spec.RunSpec` that produced this result (its model fields those of
-    the robot and capsules certified); None for a result built by hand. The loose fields above
-    (``method``, ``margin_m``...) are its values as the result's readers take them."""
 
     # -- per-trajectory access ---------------------------------------------------------------
 

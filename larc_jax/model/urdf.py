@@ -23,6 +23,7 @@ relative to the URDF (:func:`resolve_uri`).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from pathlib import Path
@@ -115,31 +116,19 @@ def load_urdf_model(
 ):
     """Parse a URDF with yourdfpy, resolving ``package://`` URIs; checks every mesh file exists.
 
-    Returns the ``yourdfpy.URDF`` object. Raises :class:`LarcInputError` naming the file and the
-    link for any unreadable URDF or missing mesh.
+    Returns the ``yourdfpy.URDF`` object, shared and read-only: the parse is cached per process,
+    keyed by the file (path, size, modification time) and the resolved package folders, so that
+    loading a robot and then reading its collision geometry (:mod:`larc_jax.enclosure.meshes`)
+    parses the file once; an edited file is parsed again. Raises :class:`LarcInputError` naming
+    the file and the link for any unreadable URDF or missing mesh.
     """
-    import yourdfpy
-
     urdf_path = Path(urdf_path)
     if not urdf_path.is_file():
         raise LarcInputError(f"{urdf_path}: URDF file does not exist")
     dirs = package_dirs_for(urdf_path, package_dirs)
-
-    def handler(fname: str) -> str:
-        return str(resolve_uri(fname, urdf_path, dirs))
-
-    try:
-        model = yourdfpy.URDF.load(
-            str(urdf_path),
-            filename_handler=handler,
-            build_scene_graph=False,
-            build_collision_scene_graph=False,
-            load_meshes=False,
-            load_collision_meshes=False,
-        )
-    except Exception as exc:  # noqa: BLE001 - report any parse failure as bad input
-        raise LarcInputError(f"{urdf_path}: cannot parse URDF ({exc})") from None
-    for link in model.robot.links:
+    st = os.stat(urdf_path)
+    model = _parse_urdf(str(urdf_path.resolve()), st.st_size, st.st_mtime_ns, tuple(sorted(dirs.items())))
+    for link in model.robot.links:  # checked on every call: a mesh may vanish after the parse
         for col in link.collisions:
             mesh = col.geometry.mesh if col.geometry is not None else None
             if mesh is not None:
@@ -150,6 +139,29 @@ def load_urdf_model(
                         f"resolves to {path}, which does not exist"
                     )
     return model
+
+
+@functools.lru_cache(maxsize=8)
+def _parse_urdf(urdf_path: str, size: int, mtime_ns: int, package_dirs: tuple):
+    """The yourdfpy parse behind :func:`load_urdf_model` (``size``/``mtime_ns`` key the cache)."""
+    import yourdfpy
+
+    dirs = dict(package_dirs)
+
+    def handler(fname: str) -> str:
+        return str(resolve_uri(fname, Path(urdf_path), dirs))
+
+    try:
+        return yourdfpy.URDF.load(
+            urdf_path,
+            filename_handler=handler,
+            build_scene_graph=False,
+            build_collision_scene_graph=False,
+            load_meshes=False,
+            load_collision_meshes=False,
+        )
+    except Exception as exc:  # noqa: BLE001 - report any parse failure as bad input
+        raise LarcInputError(f"{urdf_path}: cannot parse URDF ({exc})") from None
 
 
 _TYPE_OF = {

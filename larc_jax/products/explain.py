@@ -23,22 +23,22 @@ import math
 
 import numpy as np
 
-from ..leaf.cascade import hull_pair_clearance_np, interval_pairs_np
 from ..enclosure.capsule import CapsuleModel
+from ..enclosure.tracking import check_tracking_tolerance
+from ..engine.results import Leaf, TrajectoryResult
 from ..errors import LarcInputError
-from .explain_draw import DecidingPair, DecidingPart, Explanation, describe_leaf, render, tool_capsules
+from ..leaf.cascade import hull_pair_clearance_np, interval_pairs_np
 from ..leaf.interval import evaluate_interval_np, trajectory_rounding
+from ..leaf.placement import motion_radii
 from ..leaf.record import LeafRecord
 from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
-from ..obstacles import scene_obstacles
-from ..leaf.placement import motion_radii
-from ..engine.results import Leaf, TrajectoryResult
-from ..model.robot import Robot
-from ..run_spec import RunSpec
-from ..model.scene import Scene
 from ..leaf.self_collision import SelfPairs, curve_ranges, load_separation, segment_segment_distance_np, self_pairs
-from ..enclosure.tracking import check_tracking_tolerance
+from ..model.robot import Robot
+from ..model.scene import Scene
 from ..model.trajectory import Trajectory
+from ..obstacles import scene_obstacles
+from ..run_spec import RunSpec
+from .explain_draw import DecidingPair, DecidingPart, Explanation, describe_leaf, render, tool_capsules
 
 __all__ = ["Explanation", "choose_leaf", "describe_leaf", "explain", "render", "segment_box_closest_points",
            "segment_closest_points", "segment_segment_closest_points", "polytope_box_closest_points", "tool_capsules"]
