@@ -49,16 +49,6 @@ def _read_trajectories(args, paths, robot):
     return out
 
 
-def _hold(args) -> dict[str, float]:
-    """``--hold JOINT=VALUE`` (repeatable) as a mapping; a joint given twice is refused."""
-    return parse_hold(getattr(args, "hold", None))
-
-
-def _joints(args) -> list[str] | None:
-    """``--joints j1,j2,...``: the active joints (default: the robot file's)."""
-    return parse_joints(getattr(args, "joints", None))
-
-
 def _cmd_fit_capsules(args) -> int:
     from ..enclosure.fit_robot import check_padding, fit_robot_file
 
@@ -69,9 +59,9 @@ def _cmd_fit_capsules(args) -> int:
             bar.update(1)
 
         fit = fit_robot_file(
-            args.urdf, args.output, package_dirs=parse_package_dirs(args.package_dir), active_joints=_joints(args),
-            held_joint_values=_hold(args), n_capsules=args.n_capsules,
-            capsules_per_link=parse_capsules_per_link(args.capsules_per_link),
+            args.urdf, args.output, package_dirs=parse_package_dirs(args.package_dir),
+            active_joints=parse_joints(args.joints), held_joint_values=parse_hold(args.hold),
+            n_capsules=args.n_capsules, capsules_per_link=parse_capsules_per_link(args.capsules_per_link),
             padding_m=check_padding(args.padding, "--padding"), record_urdf=not args.no_urdf_field, progress=on_link)
     if not args.quiet:
         print("\n".join(fit.table_lines()))
@@ -157,7 +147,8 @@ def _certificate_options(args):
                        velocities=args.velocities, dtype=args.dtype, self_collision=self_collision,
                        self_margin_m=0.0 if self_margin is None else self_margin, self_skip=self_skip,
                        tracking_tolerance=None if tolerance is None else parse_tracking_tolerance(tolerance),
-                       hold=_hold(args), joints=tuple(_joints(args) or ()),
+                       hold=parse_hold(getattr(args, "hold", None)),
+                       joints=tuple(parse_joints(getattr(args, "joints", None)) or ()),
                        ignore_links=tuple(getattr(args, "ignore_link", None) or ()))
     except LarcInputError as exc:
         raise _option_error(exc) from None
