@@ -25,7 +25,8 @@ returns). Nothing here imports JAX.
 from __future__ import annotations
 
 import math
-import time
+import signal
+import threading
 
 import numpy as np
 
@@ -218,14 +219,23 @@ class Viewer:
         self.time_slider.value = lo if t > hi else t
 
     def run(self, fps: float = 30.0) -> None:
-        """Serve until Ctrl-C, animating when ``play`` is on; then stop the server."""
+        """Serve until Ctrl-C, animating when ``play`` is on; then stop the server.
+
+        In the main thread Ctrl-C only sets a flag that the loop reads: a KeyboardInterrupt raised
+        inside viser's calls (a slider update waiting on the server's event loop) could leave
+        the server unable to stop, and the process would hang on its threads."""
+        stop = threading.Event()
+        main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) if main else None
         try:
-            while True:
-                time.sleep(1.0 / fps)
+            while not stop.is_set():
+                stop.wait(1.0 / fps)
                 self.step(1.0 / fps)
         except KeyboardInterrupt:
             pass
         finally:
+            if main:
+                signal.signal(signal.SIGINT, previous)
             self.stop()
 
     def stop(self) -> None:
@@ -248,9 +258,16 @@ def view(certificate=None, *, trajectories=None, scene=None, robot=None, leaves=
             raise LarcInputError("view: give a certificate file, or trajectory files and a scene file")
     viewer = Viewer(data, host=host, port=port)
     shown = "localhost" if host in ("0.0.0.0", "::") else host
-    print(f"larc view: open http://{shown}:{viewer.server.get_port()} in a browser (Ctrl-C to stop)", flush=True)
-    if block:
-        viewer.run()
+    try:
+        print(f"larc view: open http://{shown}:{viewer.server.get_port()} in a browser (Ctrl-C to stop)", flush=True)
+        if block:
+            viewer.run()
+    except KeyboardInterrupt:
+        # Ctrl-C right after the URL, before run() took over: still stop the server, whose
+        # threads would otherwise keep the process alive.
+        viewer.stop()
+        if not block:
+            raise
     return viewer
 
 
