@@ -24,7 +24,8 @@ from ..leaf.record import LeafColumn, Stage
 if TYPE_CHECKING:
     from ..run_spec import RunSpec
 
-__all__ = ["Leaf", "LeafTable", "RunAssumptions", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS", "STAGES"]
+__all__ = ["Leaf", "LeafTable", "RunAssumptions", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS",
+           "STAGES"]
 
 STAGES = tuple(s.label for s in (Stage.NONE, Stage.CAPSULE, Stage.HULL))
 """Which test passed a leaf, by code (:class:`~larc_jax.leaf.record.Stage`): 0 none (not certified), 1
