@@ -189,10 +189,14 @@ def test_browser_shows_the_robot_and_the_boxes(viewer, tmp_path):
     assert ROBOT_RGB[0] - ROBOT_RGB[2] > 110 and BOX_RGB[2] - BOX_RGB[0] > 70  # the classes match the colours
     # The meshes reach the page over the websocket in real time, not in Chromium's virtual time: on
     # a loaded machine a first screenshot can come before them, so a longer budget is tried.
+    # --run-all-compositor-stages-before-draw: without it virtual time advances without drawing
+    # frames, so the client's fade-in animations stop part-way and the screenshot is washed out
+    # (seen in CI: the robot at 21 orange pixels, the GUI panel empty).
     for budget_ms in (8000, 20000, 45000):
         shot = tmp_path / f"view_{budget_ms}.png"
         subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu-sandbox", "--use-angle=swiftshader",
-                        "--enable-unsafe-swiftshader", "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
+                        "--enable-unsafe-swiftshader", "--run-all-compositor-stages-before-draw",
+                        "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
                         f"--window-size={w},{h}", f"--virtual-time-budget={budget_ms}", f"--screenshot={shot}",
                         viewer.url], capture_output=True, timeout=180, check=False)
         assert shot.is_file(), "chromium wrote no screenshot"
