@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -132,3 +133,49 @@ def test_one_urdf_parse_per_robot_load(piper_dir, tmp_path, monkeypatch):
     urdf.write_text(urdf.read_text().replace("</robot>", "<!-- edited --></robot>"))
     load_robot(urdf)
     assert len(parses) == 2
+
+
+def _rewrite_keeping_stamp(path: Path, data: bytes) -> None:
+    """Replace a file's bytes, keeping its size and modification time (a stat-keyed cache misses this)."""
+    st = path.stat()
+    assert len(data) == st.st_size
+    path.chmod(0o644)
+    path.write_bytes(data)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+
+
+def test_a_changed_urdf_is_parsed_again_and_hashed_as_parsed(piper_dir, tmp_path):
+    """The parse cache is keyed by the bytes' SHA-256: an edit that keeps the size and the
+    modification time is still seen, and the robot's urdf_sha256 is the hash of what was parsed."""
+    from larc_jax.enclosure.meshes import links_with_geometry
+    from larc_jax.model.urdf import file_sha256
+
+    urdf = _copy_description(piper_dir, tmp_path)
+    before = load_robot(urdf)
+    assert before.q_lower[0] == -2.618 and before.urdf_sha256 == file_sha256(urdf)
+    _rewrite_keeping_stamp(urdf, urdf.read_bytes().replace(b'lower="-2.618"', b'lower="-2.617"', 1))
+    after = load_robot(urdf)
+    assert after.q_lower[0] == -2.617 and after.urdf_sha256 == file_sha256(urdf) != before.urdf_sha256
+    # Geometry read for the old robot would come from a file it does not describe: refused.
+    with pytest.raises(LarcInputError, match=r"changed after the robot was loaded"):
+        links_with_geometry(before)
+    assert links_with_geometry(after)
+
+
+def test_a_changed_mesh_is_read_again(piper_dir, tmp_path):
+    """Mesh vertices are cached by the file's bytes, not by its size and modification time."""
+    from larc_jax.enclosure.meshes import link_collisions
+
+    urdf = _copy_description(piper_dir, tmp_path)
+    rob = load_robot(urdf)
+    (_, _, (v0, _)), = link_collisions(rob, "link6")
+    stl = urdf.parent.parent / "meshes" / "link6.STL"
+    data = bytearray(stl.read_bytes())
+    assert not data[:5].lower().startswith(b"solid")  # binary STL: 80-byte header, count, 50-byte triangles
+    x = np.frombuffer(bytes(data[96:100]), "<f4")[0]
+    data[96:100] = np.float32(x + 0.5).tobytes()  # the first vertex of the first triangle, x
+    _rewrite_keeping_stamp(stl, bytes(data))
+    (_, _, (v1, _)), = link_collisions(rob, "link6")
+    assert v0[0, 0] == x and v1[0, 0] == np.float32(x + 0.5)  # read unprocessed: vertex 0 is that vertex
+    np.testing.assert_array_equal(v1[1:], v0[1:])

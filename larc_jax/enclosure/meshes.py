@@ -5,8 +5,10 @@ format it reads (STL, OBJ, PLY, GLB; DAE through pycollada); a COLLADA ``<unit m
 scales the vertices by ``s`` (as ROS tools do), then the URDF ``scale`` applies. Boxes are
 their 8 corners; spheres and cylinders are replaced by *circumscribed* polyhedra (every face
 plane at least the radius from the centre), so enclosing the polyhedron's vertices encloses the
-primitive. The parsed URDF and the meshes are cached (keyed on the file, its size and
-modification time).
+primitive. The parsed URDF and the meshes are cached per process, keyed on the SHA-256 of the
+bytes read (each call reads the file again; a changed file is parsed again, whatever its size
+and modification time), and the URDF parse must be of the bytes the robot hashed
+(``Robot.urdf_sha256``), so the geometry is always that of the files a certificate names.
 
 The collision geometry of a link is split into *elements* (one mesh triangle, or one whole
 primitive): :func:`link_elements`. A convex enclosure holds an element iff it holds each of
@@ -38,14 +40,15 @@ rotation's sweep is not the hull of its ends): the capsule file records the valu
 
 from __future__ import annotations
 
-import functools
+import hashlib
+import io
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import LarcInputError
+from ..io import read_input_bytes
 from ..model.robot import JointType, Robot
 from ..model.urdf import file_sha256, load_urdf_model, resolve_uri
 
@@ -79,24 +82,35 @@ def _primitive_vertices(geometry) -> np.ndarray | None:
     return None
 
 
-def _file_stamp(path: str | Path) -> tuple:
-    st = os.stat(path)
-    return (str(path), st.st_size, st.st_mtime_ns)
-
-
 def robot_urdf_model(robot: Robot):
     """The parsed URDF of ``robot``: the parse :func:`~larc_jax.model.urdf.load_robot` made
-    (:func:`~larc_jax.model.urdf.load_urdf_model` caches it; re-parsed if the file changed)."""
-    return load_urdf_model(robot.urdf_path, dict(robot.package_dirs))
+    (:func:`~larc_jax.model.urdf.load_urdf_model` caches it); :class:`LarcInputError` if the
+    file no longer has the robot's ``urdf_sha256``."""
+    return load_urdf_model(robot.urdf_path, dict(robot.package_dirs), sha256=robot.urdf_sha256)
 
 
-@functools.lru_cache(maxsize=256)
-def _mesh_cached(stamp: tuple, link: str) -> tuple[np.ndarray, np.ndarray]:
+_MESH_CACHE: dict[tuple[str, str, str], tuple[np.ndarray, np.ndarray]] = {}
+_MESH_CACHE_SIZE = 256
+
+
+def _mesh(path: Path, link: str) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices and faces of the mesh file ``path`` as read now (cached by its bytes' SHA-256)."""
+    data = read_input_bytes(path, f"collision mesh of link '{link}'")
+    key = (str(path), hashlib.sha256(data).hexdigest(), link)
+    hit = _MESH_CACHE.get(key)
+    if hit is None:
+        if len(_MESH_CACHE) >= _MESH_CACHE_SIZE:
+            _MESH_CACHE.pop(next(iter(_MESH_CACHE)))  # the oldest entry
+        hit = _MESH_CACHE[key] = _parse_mesh(path, data, link)
+    return hit
+
+
+def _parse_mesh(path: Path, data: bytes, link: str) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
-    path = stamp[0]
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        mesh = trimesh.load(io.BytesIO(data), file_type=path.suffix.lstrip(".").lower(), force="mesh",
+                            process=False, resolver=trimesh.resolvers.FilePathResolver(str(path)))
     except Exception as exc:  # noqa: BLE001
         raise LarcInputError(f"{path}: cannot read mesh of link '{link}' ({exc})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
@@ -151,7 +165,7 @@ def link_collisions(robot: Robot, link: str) -> list[tuple[np.ndarray, object, t
     for origin, geom, path in _collisions(robot, link):
         mesh = None
         if path is not None:
-            v, faces = _mesh_cached(_file_stamp(path), link)
+            v, faces = _mesh(path, link)
             scale = np.asarray(geom.mesh.scale if geom.mesh.scale is not None else 1.0, float)
             mesh = (v * scale, faces)
         out.append((origin, geom, mesh))

@@ -113,21 +113,35 @@ def resolve_uri(uri: str, urdf_path: Path, package_dirs: Mapping[str, str]) -> P
 def load_urdf_model(
     urdf_path: str | os.PathLike,
     package_dirs: Mapping[str, str] | None = None,
+    *,
+    sha256: str | None = None,
 ):
     """Parse a URDF with yourdfpy, resolving ``package://`` URIs; checks every mesh file exists.
 
-    Returns the ``yourdfpy.URDF`` object, shared and read-only: the parse is cached per process,
-    keyed by the file (path, size, modification time) and the resolved package folders, so that
-    loading a robot and then reading its collision geometry (:mod:`larc_jax.enclosure.meshes`)
-    parses the file once; an edited file is parsed again. Raises :class:`LarcInputError` naming
-    the file and the link for any unreadable URDF or missing mesh.
+    The file is read once (:func:`~larc_jax.io.read_input_bytes`) and those bytes are parsed:
+    the parse is cached per process, keyed by the SHA-256 of the bytes, the resolved path and
+    package folders, so that loading a robot and then reading its collision geometry
+    (:mod:`larc_jax.enclosure.meshes`) parses the file once, and a changed file (even one of the
+    same size and modification time) is parsed again. With ``sha256`` (a robot's
+    ``urdf_sha256``) the bytes must have that hash: the geometry read for a robot is the file
+    its certificate names, never a later edit. Returns the ``yourdfpy.URDF`` object, shared and
+    read-only. Raises :class:`LarcInputError` naming the file and the link for an unreadable or
+    changed URDF or a missing mesh.
     """
+    from ..io import read_input_bytes
+
     urdf_path = Path(urdf_path)
     if not urdf_path.is_file():
         raise LarcInputError(f"{urdf_path}: URDF file does not exist")
+    data = read_input_bytes(urdf_path, "URDF file")
+    digest = hashlib.sha256(data).hexdigest()
+    if sha256 is not None and digest != sha256:
+        raise LarcInputError(
+            f"{urdf_path}: the URDF changed after the robot was loaded from it (SHA-256 now "
+            f"{digest[:16]}..., the robot's {sha256[:16]}...); load the robot again"
+        )
     dirs = package_dirs_for(urdf_path, package_dirs)
-    st = os.stat(urdf_path)
-    model = _parse_urdf(str(urdf_path.resolve()), st.st_size, st.st_mtime_ns, tuple(sorted(dirs.items())))
+    model = _parse_urdf(str(urdf_path.resolve()), digest, tuple(sorted(dirs.items())), data)
     for link in model.robot.links:  # checked on every call: a mesh may vanish after the parse
         for col in link.collisions:
             mesh = col.geometry.mesh if col.geometry is not None else None
@@ -142,8 +156,11 @@ def load_urdf_model(
 
 
 @functools.lru_cache(maxsize=8)
-def _parse_urdf(urdf_path: str, size: int, mtime_ns: int, package_dirs: tuple):
-    """The yourdfpy parse behind :func:`load_urdf_model` (``size``/``mtime_ns`` key the cache)."""
+def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple, data: bytes):
+    """The yourdfpy parse of ``data`` (the bytes of ``urdf_path``, hashed to ``sha256``) behind
+    :func:`load_urdf_model`."""
+    import io
+
     import yourdfpy
 
     dirs = dict(package_dirs)
@@ -153,8 +170,9 @@ def _parse_urdf(urdf_path: str, size: int, mtime_ns: int, package_dirs: tuple):
 
     try:
         return yourdfpy.URDF.load(
-            urdf_path,
+            io.BytesIO(data),
             filename_handler=handler,
+            mesh_dir=str(Path(urdf_path).parent),
             build_scene_graph=False,
             build_collision_scene_graph=False,
             load_meshes=False,
@@ -375,7 +393,8 @@ def load_robot(
     urdf_path = Path(urdf_path) if urdf_path is not None else piper_urdf_path()
     if not urdf_path.is_file():
         raise LarcInputError(f"{urdf_path}: URDF file does not exist")
-    key = dict(urdf=str(urdf_path.resolve()), sha256=file_sha256(urdf_path),
+    sha256 = file_sha256(urdf_path)  # what the robot (and a certificate) names; the parse is of these bytes
+    key = dict(urdf=str(urdf_path.resolve()), sha256=sha256,
                package_dirs=sorted(package_dirs_for(urdf_path, package_dirs).items()),
                active_joints=list(active_joints) if active_joints is not None else None,
                held=sorted((str(k), float(v)) for k, v in (held_joint_values or {}).items()),
@@ -383,8 +402,8 @@ def load_robot(
     robot = cached_robot(key)  # None unless the compilation cache is on (the command line)
     if robot is not None:
         return robot
-    model = load_urdf_model(urdf_path, package_dirs)
-    robot = _build_robot(model, urdf_path, package_dirs, active_joints, held_joint_values, stated_joints)
+    model = load_urdf_model(urdf_path, package_dirs, sha256=sha256)
+    robot = _build_robot(model, urdf_path, sha256, package_dirs, active_joints, held_joint_values, stated_joints)
     keep_robot(key, robot, _mesh_files(model, urdf_path, robot.package_dirs))
     return robot
 
@@ -395,7 +414,8 @@ def _mesh_files(model, urdf_path: Path, package_dirs) -> list[Path]:
             for c in link.collisions if c.geometry is not None and c.geometry.mesh is not None]
 
 
-def _build_robot(model, urdf_path: Path, package_dirs, active_joints, held_joint_values, stated_joints) -> Robot:
+def _build_robot(model, urdf_path: Path, urdf_sha256: str, package_dirs, active_joints, held_joint_values,
+                 stated_joints) -> Robot:
     """The steps of :func:`load_robot` after parsing."""
     joints = _check_joints(model, urdf_path)
     link_names, parent, joint_of, children = _tree(model, urdf_path)
@@ -447,7 +467,7 @@ def _build_robot(model, urdf_path: Path, package_dirs, active_joints, held_joint
         q_index=tuple(q_index),
         active_joint_names=tuple(active),
         urdf_path=str(urdf_path.resolve()),
-        urdf_sha256=file_sha256(urdf_path),
+        urdf_sha256=urdf_sha256,
         package_dirs=tuple(sorted(dirs.items())),
         stated_joints=stated,
     )
