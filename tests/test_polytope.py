@@ -163,3 +163,37 @@ def test_nan_gives_nan_and_float32_is_close():
     assert math.isnan(_kernel(V, V.mean(0), np.eye(3), bad, lo, hi))
     assert math.isnan(polytope_box_lower_bound_np(V, V.mean(0), np.eye(3), bad, lo, hi))
     assert _kernel(V, V.mean(0), np.eye(3), np.zeros(3), lo, hi, np.float32) == pytest.approx(0.2, abs=1e-6)
+
+
+def _equations(jaxpr):
+    """Every equation of a jaxpr, those of its sub-jaxprs (loop bodies, conditionals) included."""
+    import jax.extend
+
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else (value,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    yield from _equations(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    yield from _equations(sub)
+
+
+def test_every_product_is_ieee_in_float32():
+    """The rounding bounds assume IEEE products; a float32 product on a GPU defaults to TF32 (a
+    10-bit mantissa). Every product of the kernel (bound and search) and of forward kinematics
+    asks for HIGHEST, checked on the traced program (no GPU needed)."""
+    from larc_jax.model.robot import forward_kinematics
+    from larc_jax.model.urdf import load_robot
+
+    f32 = np.float32
+    args = (np.zeros((2, 4, 3), f32), 0, np.zeros(3, f32), np.eye(3, dtype=f32), np.zeros(3, f32),
+            np.zeros(3, f32), np.ones(3, f32))
+    robot = jax.tree.map(lambda x: x.astype(f32) if isinstance(x, np.ndarray) and x.dtype == np.float64 else x,
+                         load_robot())
+    for jaxpr in (jax.make_jaxpr(polytope_box_lower_bound)(*args),
+                  jax.make_jaxpr(lambda q: forward_kinematics(robot, q))(np.zeros(len(robot.active_joint_names), f32))):
+        dots = [e for e in _equations(jaxpr.jaxpr) if e.primitive.name == "dot_general"]
+        assert dots
+        for e in dots:
+            assert e.params["precision"] == (jax.lax.Precision.HIGHEST,) * 2, e

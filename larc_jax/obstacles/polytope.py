@@ -88,6 +88,13 @@ _FACE_K = np.array([f[2] if len(f) > 2 else f[0] for f in _FACES])
 _FACE_SIZE = np.array([len(f) for f in _FACES])
 
 
+def _dot(a, b):
+    """IEEE product. The rounding bounds (module docstring) assume IEEE arithmetic, but a
+    float32 product on a GPU defaults to TF32 (a 10-bit mantissa), which they do not cover; on a
+    CPU this changes nothing (tests/test_polytope.py checks every product of the kernel)."""
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
 def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     """Point of conv(active rows of ``Y`` (4, 3)) nearest the origin, and its weights (4,).
 
@@ -97,7 +104,7 @@ def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     the simplex). A full tetrahedron holding the origin gives the origin (weights from signed
     volumes)."""
     dtype = Y.dtype
-    G = Y @ Y.T
+    G = _dot(Y, Y.T)
     i, j, k = jnp.asarray(_FACE_I), jnp.asarray(_FACE_J), jnp.asarray(_FACE_K)
     size = jnp.asarray(_FACE_SIZE)
     gii, gij, gik, gjj, gjk, gkk = G[i, i], G[i, j], G[i, k], G[j, j], G[j, k], G[k, k]
@@ -120,7 +127,7 @@ def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     # (14, 4) weights on the rows of Y (the unused slots of vertices and edges have weight 0).
     W = (jax.nn.one_hot(i, 4, dtype=dtype) * lam[:, :1] + jax.nn.one_hot(j, 4, dtype=dtype) * lam[:, 1:2]
          + jax.nn.one_hot(k, 4, dtype=dtype) * lam[:, 2:])
-    norm2 = jnp.where(ok, jnp.einsum("fa,ab,fb->f", W, G, W), jnp.inf)
+    norm2 = jnp.where(ok, jnp.einsum("fa,ab,fb->f", W, G, W, precision=jax.lax.Precision.HIGHEST), jnp.inf)
     lam4 = W[jnp.argmin(norm2)]
     e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
     vol = _triple(e1, e2, e3)
@@ -129,12 +136,12 @@ def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     tet = jnp.concatenate([(1 - tmu.sum())[None], tmu])
     inside = jnp.all(active) & (vol != 0) & jnp.all(tet >= 0)
     lam4 = jnp.where(inside, tet, lam4)
-    x = jnp.where(inside, jnp.zeros(3, dtype), lam4 @ Y)
+    x = jnp.where(inside, jnp.zeros(3, dtype), _dot(lam4, Y))
     return x, lam4
 
 
 def _triple(a, b, c):
-    return a @ jnp.cross(b, c)
+    return _dot(a, jnp.cross(b, c))
 
 
 def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,
@@ -167,16 +174,16 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
     def bound(w, part):
         """(S) at ``w`` less its rounding bound (module docstring), and the point of D = B - P
         attaining it."""
-        w = jnp.where(w @ w > 0, w, unit_x)  # any axis is sound; this one avoids 0/0
-        m = R.T @ w  # the axis in the link frame
+        w = jnp.where(_dot(w, w) > 0, w, unit_x)  # any axis is sound; this one avoids 0/0
+        m = _dot(R.T, w)  # the axis in the link frame
         V = table[part]  # read by the reduction only (fused); the winner is fetched apart
         k = jnp.argmax(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
-        s = jnp.where(w > 0, lo, hi) - (R @ table[part, k] + t)
-        norm = jnp.sqrt(w @ w)
-        lb = (w @ s) / norm
-        return lb - 32 * u * (jnp.abs(w) @ jnp.abs(s) / norm + jnp.abs(lb) + v_max), s
+        s = jnp.where(w > 0, lo, hi) - (_dot(R, table[part, k]) + t)
+        norm = jnp.sqrt(_dot(w, w))
+        lb = _dot(w, s) / norm
+        return lb - 32 * u * (_dot(jnp.abs(w), jnp.abs(s)) / norm + jnp.abs(lb) + v_max), s
 
-    c = R @ centre + t
+    c = _dot(R, centre) + t
     best, s = bound(jnp.clip(c, lo, hi) - c, part)
     Y = jnp.zeros((4, 3), dtype).at[0].set(s)
     active = jnp.array([True, False, False, False])
