@@ -179,3 +179,44 @@ def test_a_changed_mesh_is_read_again(piper_dir, tmp_path):
     (_, _, (v1, _)), = link_collisions(rob, "link6")
     assert v0[0, 0] == x and v1[0, 0] == np.float32(x + 0.5)  # read unprocessed: vertex 0 is that vertex
     np.testing.assert_array_equal(v1[1:], v0[1:])
+
+
+def test_a_changed_mesh_rebuilds_the_hulls(piper_dir, tmp_path):
+    """The hull cache is keyed by the files' contents: a mesh edited in place (same size and
+    modification time) gives new hull parts, never the old mesh's."""
+    from larc_jax.enclosure.hull import hull_model
+
+    urdf = _copy_description(piper_dir, tmp_path)
+    rob = load_robot(urdf)
+    before = hull_model(rob)
+    assert hull_model(rob) is before
+    stl = urdf.parent.parent / "meshes" / "link6.STL"
+    data = bytearray(stl.read_bytes())
+    x = np.frombuffer(bytes(data[96:100]), "<f4")[0]
+    data[96:100] = np.float32(x + 0.5).tobytes()  # a vertex 0.5 m out: the link6 hull must grow
+    _rewrite_keeping_stamp(stl, bytes(data))
+    after = hull_model(rob)
+    p = before.names.index("link6")
+    assert after is not before
+    assert np.asarray(after.vertices[p])[:, 0].max() > np.asarray(before.vertices[p])[:, 0].max() + 0.4
+
+
+def test_a_changed_robot_file_is_loaded_again_by_a_manifest_run(tmp_path):
+    """The manifest's per-process robot-file cache is keyed by the file's content."""
+    from larc_jax.drivers.manifest import ManifestJob, _load_model
+    from larc_jax.enclosure.robot_file import default_capsule_path
+
+    from larc_jax.model.urdf import piper_urdf_path
+
+    path = tmp_path / "capsules.yaml"  # PIPER's shipped file, made a robot file by naming its URDF
+    path.write_bytes(f"urdf: {piper_urdf_path()}\n".encode() + Path(default_capsule_path()).read_bytes())
+    job = ManifestJob(out=str(tmp_path / "out"), leaves=None, robot_file=str(path))
+    _, capsules = _load_model(job)
+    text = path.read_bytes()
+    assert text.count(b"radius: 0.06218\n") == 1
+    _rewrite_keeping_stamp(path, text.replace(b"radius: 0.06218\n", b"radius: 0.07218\n"))  # a larger capsule stays sound
+    _, again = _load_model(job)
+    r0, r1 = np.asarray(capsules.radius, float), np.asarray(again.radius, float)
+    changed = np.flatnonzero(r0 != r1)
+    assert again is not capsules and len(changed) == 1
+    assert np.isclose(r0[changed[0]], 0.06218) and np.isclose(r1[changed[0]], 0.07218)

@@ -35,7 +35,6 @@ import hashlib
 import io
 import itertools
 import json
-import os
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -150,19 +149,18 @@ def part_name(k: int) -> str:
 
 
 @functools.lru_cache(maxsize=4)
-def _model(robot_file: str | None, stamp, hold: tuple, joints: tuple):
-    """Robot and capsules, loaded once per process (and reloaded if the file changes)."""
+def _model(robot_file: str | None, sha256: str | None, hold: tuple, joints: tuple):
+    """Robot and capsules, loaded once per process (and reloaded if the file's content changes)."""
     from ..enclosure.robot_file import load_robot_file
 
     return load_robot_file(robot_file, hold=dict(hold), active_joints=list(joints) or None)
 
 
 def _load_model(job: ManifestJob):
-    stamp = None
-    if job.robot_file is not None:
-        st = os.stat(job.robot_file)
-        stamp = (st.st_size, st.st_mtime_ns)
-    return _model(job.robot_file, stamp, job.spec.hold, job.spec.joints)
+    from ..model.urdf import file_sha256
+
+    sha256 = None if job.robot_file is None else file_sha256(job.robot_file)
+    return _model(job.robot_file, sha256, job.spec.hold, job.spec.joints)
 
 
 def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],

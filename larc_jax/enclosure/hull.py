@@ -42,7 +42,6 @@ robot from its meshes and the split planes of its robot file.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 from typing import Sequence
 
@@ -304,25 +303,21 @@ def build_hulls(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float
     )
 
 
-def _geometry_stamps(robot: Robot) -> tuple:
-    """File stamps of the URDF and every collision mesh (a changed file rebuilds the hulls)."""
-    from ..model.urdf import resolve_uri
+def _geometry_hashes(robot: Robot) -> tuple:
+    """SHA-256 of the URDF (the robot's, checked against the file by
+    :func:`~larc_jax.enclosure.meshes.robot_urdf_model`) and of every collision mesh's bytes as
+    they are now: any change of content rebuilds the hulls, whatever the file's size and
+    modification time."""
+    from ..model.urdf import file_sha256, resolve_uri
 
-    def stamp(path) -> tuple:
-        try:
-            st = os.stat(path)
-        except OSError:
-            return (str(path),)
-        return (str(path), st.st_size, st.st_mtime_ns)
-
-    model = robot_urdf_model(robot)
-    stamps = [stamp(robot.urdf_path)]
+    model = robot_urdf_model(robot)  # also refuses a missing mesh, naming the link
+    hashes = [robot.urdf_sha256]
     for link in model.robot.links:
         for col in link.collisions:
             if col.geometry is not None and col.geometry.mesh is not None:
                 path = resolve_uri(col.geometry.mesh.filename, Path(robot.urdf_path), dict(robot.package_dirs))
-                stamps.append(stamp(path))
-    return tuple(stamps)
+                hashes.append((str(path), file_sha256(path)))
+    return tuple(hashes)
 
 
 _CACHE: dict = {}
@@ -330,9 +325,9 @@ _CACHE: dict = {}
 
 def hull_model(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float = 0.001) -> HullModel:
     """:func:`build_hulls`, cached per process on everything the result depends on (the geometry
-    files' stamps, the robot's joints, held values and stated joints, the planes, the padding)."""
+    files' contents, the robot's joints, held values and stated joints, the planes, the padding)."""
     key = (
-        _geometry_stamps(robot), robot.link_names, robot.joint_names, robot.active_joint_names,
+        _geometry_hashes(robot), robot.link_names, robot.joint_names, robot.active_joint_names,
         tuple(np.asarray(robot.q_held, np.float64).tolist()), robot.stated_joints,
         tuple(np.asarray(robot.T_parent_joint, np.float64).ravel().tolist()),
         tuple((l, tuple(n), float(o)) for l, n, o in hull_parts), float(padding_m),
