@@ -145,6 +145,17 @@ def _rewrite_keeping_stamp(path: Path, data: bytes) -> None:
     assert (path.stat().st_size, path.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
 
 
+def _move_first_stl_vertex(stl: Path, dx: float) -> float:
+    """Move the first vertex of a binary STL (80-byte header, count, 50-byte triangles) by ``dx``
+    along x, in place, keeping the file's size and modification time; returns its old x."""
+    data = bytearray(stl.read_bytes())
+    assert not data[:5].lower().startswith(b"solid")
+    x = np.frombuffer(bytes(data[96:100]), "<f4")[0]
+    data[96:100] = np.float32(x + dx).tobytes()
+    _rewrite_keeping_stamp(stl, bytes(data))
+    return x
+
+
 def test_a_changed_urdf_is_parsed_again_and_hashed_as_parsed(piper_dir, tmp_path):
     """The parse cache is keyed by the bytes' SHA-256: an edit that keeps the size and the
     modification time is still seen, and the robot's urdf_sha256 is the hash of what was parsed."""
@@ -170,12 +181,7 @@ def test_a_changed_mesh_is_read_again(piper_dir, tmp_path):
     urdf = _copy_description(piper_dir, tmp_path)
     rob = load_robot(urdf)
     (_, _, (v0, _)), = link_collisions(rob, "link6")
-    stl = urdf.parent.parent / "meshes" / "link6.STL"
-    data = bytearray(stl.read_bytes())
-    assert not data[:5].lower().startswith(b"solid")  # binary STL: 80-byte header, count, 50-byte triangles
-    x = np.frombuffer(bytes(data[96:100]), "<f4")[0]
-    data[96:100] = np.float32(x + 0.5).tobytes()  # the first vertex of the first triangle, x
-    _rewrite_keeping_stamp(stl, bytes(data))
+    x = _move_first_stl_vertex(urdf.parent.parent / "meshes" / "link6.STL", 0.5)
     (_, _, (v1, _)), = link_collisions(rob, "link6")
     assert v0[0, 0] == x and v1[0, 0] == np.float32(x + 0.5)  # read unprocessed: vertex 0 is that vertex
     np.testing.assert_array_equal(v1[1:], v0[1:])
@@ -190,11 +196,7 @@ def test_a_changed_mesh_rebuilds_the_hulls(piper_dir, tmp_path):
     rob = load_robot(urdf)
     before = hull_model(rob)
     assert hull_model(rob) is before
-    stl = urdf.parent.parent / "meshes" / "link6.STL"
-    data = bytearray(stl.read_bytes())
-    x = np.frombuffer(bytes(data[96:100]), "<f4")[0]
-    data[96:100] = np.float32(x + 0.5).tobytes()  # a vertex 0.5 m out: the link6 hull must grow
-    _rewrite_keeping_stamp(stl, bytes(data))
+    _move_first_stl_vertex(urdf.parent.parent / "meshes" / "link6.STL", 0.5)  # 0.5 m out: the link6 hull must grow
     after = hull_model(rob)
     p = before.names.index("link6")
     assert after is not before
@@ -205,7 +207,6 @@ def test_a_changed_robot_file_is_loaded_again_by_a_manifest_run(tmp_path):
     """The manifest's per-process robot-file cache is keyed by the file's content."""
     from larc_jax.drivers.manifest import ManifestJob, _load_model
     from larc_jax.enclosure.robot_file import default_capsule_path
-
     from larc_jax.model.urdf import piper_urdf_path
 
     path = tmp_path / "capsules.yaml"  # PIPER's shipped file, made a robot file by naming its URDF
