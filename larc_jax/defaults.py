@@ -6,7 +6,8 @@ from __future__ import annotations
 __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "MAX_DEPTH_LIMIT",
     "METHODS", "VELOCITY_MODES", "DEFAULT_PADDING_M", "DEFAULT_CHUNK_SIZE", "POSITION_TOLERANCE",
-    "ENCLOSURES", "DEFAULT_ENCLOSURE", "check_margin", "check_depth", "check_enclosure",
+    "ENCLOSURES", "DEFAULT_ENCLOSURE", "DEFAULT_RUN_PADDING_M", "check_margin", "check_depth", "check_enclosure",
+    "check_padding",
 ]
 
 DEFAULT_MARGIN_M = 0.01
@@ -32,11 +33,24 @@ motion constants of joints above an active prismatic joint are derived for its l
 twice this (:mod:`larc_jax.enclosure.motion`), so larger excursions are refused
 (:func:`larc_jax.model.trajectory.validate_trajectory`), between waypoints too."""
 DEFAULT_PADDING_M = 0.001
-"""Padding added to fitted capsule radii (and to the hull parts) on top of the proven containment, m."""
+"""Padding a fitted robot file records: added to its capsule radii on top of the proven containment,
+m (the paper's 1 mm). A run may state another (``RunSpec.padding_m``)."""
 ENCLOSURES = ("hull", "capsules")
 """``hull``: the cascade (capsule test, then the convex-hull test on what it leaves open;
 :mod:`larc_jax.leaf.cascade`); ``capsules``: the capsule test alone (the paper's model)."""
 DEFAULT_ENCLOSURE = ENCLOSURES[0]
+DEFAULT_RUN_PADDING_M = {"capsules": DEFAULT_PADDING_M, "hull": 0.0}
+"""The padding a run adds to every enclosure on top of its proven containment of the link meshes, m,
+when the run does not state one (``RunSpec.padding_m``, ``--padding``), per enclosure:
+
+* ``capsules``: the paper's 1 mm (its Stage B model).
+* ``hull`` (the cascade, both its stages): 0. Every enclosure of the cascade holds every mesh vertex
+  exactly (the capsules' cores and the hull parts are proven to contain them,
+  :mod:`larc_jax.enclosure.proof`), so a certificate with no padding states what it always states,
+  that every link mesh stays more than rho from every obstacle; rho is where a user puts the
+  allowance for what the model does not hold (mesh error, calibration). The padding only widened
+  the enclosures and moved the certification boundary away from the true one
+  (``results/tightness`` measures the difference)."""
 
 
 def check_margin(margin, what: str = "margin") -> float:
@@ -69,3 +83,19 @@ def check_depth(depth, what: str = "max_depth") -> int:
     if isinstance(depth, bool) or not isinstance(depth, numbers.Integral) or not 0 <= depth <= MAX_DEPTH_LIMIT:
         raise LarcInputError(f"{what} {depth!r}: must be an integer in 0..{MAX_DEPTH_LIMIT}")
     return int(depth)
+
+
+def check_padding(padding, what: str = "padding_m") -> float:
+    """A padding as a float: a finite number >= 0 m; else :class:`LarcInputError` naming ``what``."""
+    import math
+    import numbers
+
+    from .errors import LarcInputError
+
+    if hasattr(padding, "item") and getattr(padding, "ndim", 1) == 0:  # a NumPy scalar
+        padding = padding.item()
+    if isinstance(padding, bool) or not isinstance(padding, numbers.Real) or \
+            not (math.isfinite(padding) and padding >= 0):
+        raise LarcInputError(f"{what} {padding!r}: must be a finite number >= 0 m (added to every enclosure on top "
+                             "of its proven containment)")
+    return float(padding)

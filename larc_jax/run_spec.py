@@ -22,8 +22,9 @@ import math
 import numbers
 from typing import Mapping
 
-from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS,
-                       VELOCITY_MODES, check_depth, check_enclosure, check_margin)
+from .defaults import (DEFAULT_COARSE_DEPTH, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH,
+                       DEFAULT_RUN_PADDING_M, METHODS, VELOCITY_MODES, check_depth, check_enclosure, check_margin,
+                       check_padding)
 from .errors import LarcInputError
 from .io import short_repr as short
 
@@ -119,6 +120,12 @@ class RunSpec:
     """Depth of ``method="coarse"``."""
     enclosure: str = DEFAULT_ENCLOSURE
     """``hull`` (the cascade) or ``capsules``."""
+    padding_m: float | None = None
+    """Padding added to every enclosure (capsules and hull parts) on top of its proven containment
+    of the link meshes, m: the certificate states that every link mesh grown by it stays more than
+    ``margin_m`` from every obstacle. None (not stated): the enclosure's default,
+    :data:`~larc_jax.defaults.DEFAULT_RUN_PADDING_M` (1 mm for ``capsules``, 0 for ``hull``); the
+    spec then records the value."""
     dtype: str = DTYPES[0]
     """Geometry dtype; ``method="reference"`` always runs float64 (normalised here)."""
     velocities: str = VELOCITY_MODES[0]
@@ -145,6 +152,8 @@ class RunSpec:
         put("max_depth", check_depth(self.max_depth, "max_depth"))
         put("coarse_depth", check_depth(self.coarse_depth, "coarse_depth"))
         put("enclosure", check_enclosure(self.enclosure, "enclosure"))
+        put("padding_m", DEFAULT_RUN_PADDING_M[self.enclosure] if self.padding_m is None
+            else check_padding(self.padding_m, "padding_m"))
         dtype = _dtype(self.dtype)
         put("dtype", DTYPES[0] if self.method == "reference" else dtype)  # the reference is NumPy float64
         put("velocities", _choice(self.velocities, VELOCITY_MODES, "velocities"))

@@ -57,7 +57,7 @@ def test_cli_certificate_verifies(cli_cert, capsys):
     reach = doc["trajectories"][0]
     assert reach["file"] == REACH and reach["scene"] == 0 and doc["scenes"][0]["file"] == CELL
     assert doc["parameters"]["max_depth"] == int(DEPTH) and doc["parameters"]["dtype"] == "float64"
-    assert doc["parameters"]["margin_m"] == 0.01 and doc["version"] == 3
+    assert doc["parameters"]["margin_m"] == 0.01 and doc["version"] == 4 and doc["parameters"]["padding_m"] == 0.0
     assert doc["robot"]["geometry"] and all("sha256" in e for link in doc["robot"]["geometry"].values()
                                             for e in link if "mesh" in e)
 
@@ -99,7 +99,7 @@ def _certificate_uses_the_results_hulls(result, traj, scene, robot, capsules, do
     from larc_jax.products.certificate import certificate
     from larc_jax.enclosure.hull import hull_model
 
-    own = hull_model(robot, capsules.hull_parts, capsules.padding_m)
+    own = hull_model(robot, capsules.hull_parts, result.padding_m)
     assert certificate(result, [traj], scene, robot, capsules, hulls=own) == doc
     thinner = dataclasses.replace(own, radius=np.asarray(own.radius) * 0.5)
     with pytest.raises(LarcInputError, match=r"hull parts \(hulls=\) other than .*hull_parts"):
@@ -137,6 +137,8 @@ def _set_leaf(key, k, f):
     ("false claim", lambda doc: doc["trajectories"][1].update(certified=True), "sweep_front"),
     ("mesh hash edited", lambda doc: doc["robot"]["geometry"]["link6"][0].update(sha256="0" * 64), "collision geometry"),
     ("urdf hash edited", lambda doc: doc["robot"].update(urdf_sha256="0" * 64), "URDF"),
+    ("enclosures hash edited", lambda doc: doc["robot"].update(enclosures_sha256="0" * 64), "robot.enclosures_sha256"),
+    ("padding forged", lambda doc: doc["parameters"].update(padding_m=0.001), "robot.enclosures_sha256"),
     ("trajectory file hash edited", lambda doc: doc["trajectories"][0].update(sha256="0" * 64), "trajectory file"),
 ])
 def test_edited_certificate_is_refuted(cli_cert, tmp_path, capsys, name, edit, why):
@@ -222,8 +224,9 @@ def test_changed_mesh_on_disk_is_refuted(tmp_path, capsys):
     ("{not json", "not valid JSON"),
     ('{"format": "something"}', "not a larc certificate"),
     ('{"format": "larc-certificate", "version": 99}', "unknown certificate version 99"),
-    ('{"format": "larc-certificate", "version": 3}', "missing field 'parameters'"),
+    ('{"format": "larc-certificate", "version": 4}', "missing field 'parameters'"),
     ('{"format": "larc-certificate", "version": 2}', "a version-2 certificate"),
+    ('{"format": "larc-certificate", "version": 3}', "a version-3 certificate"),
 ])
 def test_bad_input_exits_2(tmp_path, capsys, content, why):
     path = tmp_path / "c.json"
@@ -299,8 +302,14 @@ def test_deferred_jax_registers_the_pytrees_when_jax_is_used():
 
 def test_hull_leaves_are_rechecked_with_the_cascade(cli_cert, tmp_path, capsys):
     """The default certificate (the cascade) has leaves only the hull stage passes: the checker
-    re-runs the cascade's reference on them, and an edited hull-leaf clearance is refuted."""
-    path, doc = cli_cert
+    re-runs the cascade's reference on them, and an edited hull-leaf clearance is refuted. With 1 mm
+    of padding (with the cascade's default, none, the capsule test passes all of reach_left)."""
+    path = tmp_path / "padded.json"
+    assert main(["certify", REACH, "--scene", CELL, "--max-depth", DEPTH, "--padding", "0.001", "--certificate",
+                 str(path), "-q"]) == EXIT_OK
+    doc = json.loads(path.read_text())
+    assert _verify(path) == EXIT_OK
+    capsys.readouterr()
     stages = doc["trajectories"][0]["leaves"]["stage"]
     assert doc["parameters"]["enclosure"] == "hull" and 2 in stages, stages
     j = stages.index(2)

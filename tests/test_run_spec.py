@@ -235,7 +235,7 @@ def test_dask_runs_the_same_manifest_loop(tmp_path, few):
 
     trajs, scenes = few
     manifest = write_manifest(tmp_path, trajs, scenes)
-    spec = RunSpec(method="reference", max_depth=2, self_collision=True, tracking_tolerance=0.001)
+    spec = RunSpec(method="reference", max_depth=2, self_collision=True, tracking_tolerance=0.001, padding_m=0.0015)
     jobs = [ManifestJob(out=str(tmp_path / name), leaves=None, robot_file=None, spec=spec, chunk_size=2)
             for name in ("dask.parquet", "local.parquet")]
     seen = []
@@ -245,5 +245,6 @@ def test_dask_runs_the_same_manifest_loop(tmp_path, few):
     assert total["rows"] == 3 and total["chunks_done"] == 2 and len(seen) == 2
     certify_manifest(manifest, jobs[1])
     pd.testing.assert_frame_equal(pd.read_parquet(jobs[0].out), pd.read_parquet(jobs[1].out))
+    assert (pd.read_parquet(jobs[0].out)["padding_m"] == 0.0015).all()  # the padding reached the workers
     with pytest.raises(LarcInputError, match="spec.max_depth"):  # refused before reaching any cluster
         certify_manifest_dask(manifest, dataclasses.replace(jobs[0], spec=RunSpec(max_depth=3)), "tcp://0.0.0.0:1")

@@ -190,7 +190,7 @@ def _skeleton() -> dict:
     """A certificate with every level present (values are placeholders: the field check runs
     before any value is read)."""
     doc = {key: None for key in CERTIFICATE_FIELDS[""]}
-    doc.update(format="larc-certificate", version=3)
+    doc.update(format="larc-certificate", version=4)
     doc["parameters"] = {key: None for key in CERTIFICATE_FIELDS["parameters"]}
     doc["robot"] = {key: None for key in CERTIFICATE_FIELDS["robot"]}
     doc["scenes"] = [{key: None for key in CERTIFICATE_FIELDS["scenes[]"]}]

@@ -38,11 +38,12 @@ def _free_port() -> int:
 @pytest.fixture(scope="module")
 def cert(tmp_path_factory):
     """A certificate and leaf table of reach_left (certified) and sweep_front (not), NumPy reference,
-    hull cascade and self-collision test: leaves decided by the capsule, hull and self tests."""
+    hull cascade and self-collision test: leaves decided by the capsule, hull and self tests (with
+    1 mm of padding: with the cascade's default, none, the capsule test alone passes reach_left)."""
     d = tmp_path_factory.mktemp("view")
     path, leaves = d / "cert.json", d / "leaves.csv"
     assert main(["certify", REACH, SWEEP, "--scene", CELL, "--method", "reference", "--max-depth", "5",
-                 "--self-collision", "--certificate", str(path), "--leaves", str(leaves),
+                 "--padding", "0.001", "--self-collision", "--certificate", str(path), "--leaves", str(leaves),
                  "--no-fail-on-uncertified", "-q"]) == EXIT_OK
     return path, leaves
 
@@ -58,7 +59,9 @@ def viewer(cert):
 
 def test_readers_agree(cert):
     a = read_view_certificate(cert[0])
-    b = read_view_files([REACH, SWEEP], CELL, leaves=cert[1])
+    b = read_view_files([REACH, SWEEP], CELL, leaves=cert[1], padding_m=0.001)
+    np.testing.assert_array_equal(np.asarray(a.capsules.radius), np.asarray(b.capsules.radius))  # the run's padding
+    assert a.capsules.padding_m == 0.001 and read_view_files([REACH], CELL).capsules.padding_m == 0.0
     assert [it.traj.id for it in a.items] == [it.traj.id for it in b.items] == ["reach_left", "sweep_front"]
     for x, y in zip(a.items, b.items):
         for col in ("depth", "index", "t0", "t1", "certified", "capsule", "box", "other_capsule", "stage"):

@@ -116,6 +116,7 @@ class Claim:
     stated: dict
     excluded: frozenset
     margin_m: float
+    padding_m: float  # every mesh clears margin_m + padding_m
     enclosure: str
     tolerance: dict | None
     self_collision: tuple | None  # (margin_m, skipped pairs)
@@ -138,13 +139,16 @@ def read_claim(text: str) -> Claim:
         doc = json.loads(text.removeprefix("\ufeff"), object_pairs_hook=_no_duplicates)
     except (ValueError, RecursionError) as exc:
         raise Unreadable(f"not JSON: {exc}") from None
-    if not isinstance(doc, dict) or doc.get("format") != "larc-certificate" or doc.get("version") != 3:
+    if not isinstance(doc, dict) or doc.get("format") != "larc-certificate" or doc.get("version") != 4:
         raise Unreadable("format/version")
     p, r = _field(doc, "parameters", dict, ""), _field(doc, "robot", dict, "")
     margin = _num(_field(p, "margin_m", (int, float), "p"), "margin_m")
     depth = _field(p, "max_depth", int, "p")
     if margin <= 0 or not 0 <= depth <= 64 or _field(p, "dtype", str, "p") not in ("float64", "float32"):
         raise Unreadable("margin, depth or dtype")
+    padding = _num(_field(p, "padding_m", (int, float), "p"), "padding_m")
+    if not padding >= 0:
+        raise Unreadable("padding")
     enclosure = _field(p, "enclosure", str, "p")
     if enclosure not in ("hull", "capsules"):
         raise Unreadable("enclosure")
@@ -183,7 +187,7 @@ def read_claim(text: str) -> Claim:
         trajs.append(TrajClaim(_path(_field(t, "file", str, "traj")), _field(t, "sha256", (str, type(None)), "traj"),
                                _field(t, "arrays_sha256", str, "traj"), velocities, scenes[k],
                                tuple((_hex(a, "t0"), _hex(b, "t1")) for a, b in zip(t0, t1))))
-    return Claim(robot, stated, frozenset(_strs(_field(p, "ignore_links", list, "p"), "excluded")), margin,
+    return Claim(robot, stated, frozenset(_strs(_field(p, "ignore_links", list, "p"), "excluded")), margin, padding,
                  enclosure, tol, sc, tuple(trajs))
 
 
@@ -202,6 +206,7 @@ def implied(m: Claim, o: Claim) -> bool:
         return what(a) == what(b) and a.sha256 in (b.sha256, None) and a.scene[1] in (b.scene[1], None)
 
     return (m.robot == o.robot and m.excluded >= o.excluded and m.margin_m <= o.margin_m
+            and m.padding_m <= o.padding_m
             and all(j in m.stated and m.stated[j] == v for j, v in o.stated.items())
             and weaker_or_equal(m.tolerance, o.tolerance)
             and (m.self_collision is None or (o.self_collision is not None and m.self_collision[0] <=
@@ -216,6 +221,7 @@ def claim_holds(c: Claim) -> str | None:
         robot, caps = cached_robot_load(load_robot_file, c.robot[0], hold=c.stated, active_joints=list(c.robot[4]))
         more = [x for x in c.excluded if x not in caps.excluded_links]
         caps = caps.without_links(robot, more) if more else caps
+        caps = caps.with_padding(c.padding_m)  # the claim: every mesh clears margin + padding
         delta = None if c.tolerance is None else np.array([c.tolerance.get(j, 0.0) for j in robot.active_joint_names])
         enc = leaf_enclosures(robot, caps, c.enclosure, delta)
         pairs = None

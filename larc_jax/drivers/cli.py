@@ -50,7 +50,8 @@ def _read_trajectories(args, paths, robot):
 
 
 def _cmd_fit_capsules(args) -> int:
-    from ..enclosure.fit_robot import check_padding, fit_robot_file
+    from ..defaults import check_padding
+    from ..enclosure.fit_robot import fit_robot_file
 
     with progress_bar(args, desc="fitting capsules", unit=" links") as bar:
         def on_link(msg: str) -> None:
@@ -126,7 +127,7 @@ def _certify_with_progress(args, spec, trajectories, scene, robot, capsules):
     return result
 
 
-_SPEC_OPTIONS = {"margin_m": "--margin", "max_depth": "--max-depth", "tracking_tolerance": "--tracking-tolerance",
+_SPEC_OPTIONS = {"margin_m": "--margin", "padding_m": "--padding", "max_depth": "--max-depth", "tracking_tolerance": "--tracking-tolerance",
                  "self_margin_m": "--self-margin", "self_skip": "--self-skip", "ignore_links": "--ignore-link",
                  "hold": "--hold", "joints": "--joints", "dtype": "--dtype"}
 
@@ -144,7 +145,7 @@ def _certificate_options(args):
     tolerance = getattr(args, "tracking_tolerance", None)
     try:
         return RunSpec(method=args.method, margin_m=args.margin, max_depth=args.max_depth, enclosure=args.enclosure,
-                       velocities=args.velocities, dtype=args.dtype, self_collision=self_collision,
+                       padding_m=getattr(args, "padding", None), velocities=args.velocities, dtype=args.dtype, self_collision=self_collision,
                        self_margin_m=0.0 if self_margin is None else self_margin, self_skip=self_skip,
                        tracking_tolerance=None if tolerance is None else parse_tracking_tolerance(tolerance),
                        hold=parse_hold(getattr(args, "hold", None)),

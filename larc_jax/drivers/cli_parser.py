@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 
 from ..defaults import (DEFAULT_CHUNK_SIZE, DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, DEFAULT_PADDING_M,
-                       ENCLOSURES, METHODS, VELOCITY_MODES)
+                       DEFAULT_RUN_PADDING_M, ENCLOSURES, METHODS, VELOCITY_MODES)
 from ..errors import OneLineError
 from ..run_spec import DTYPES
 from ..products.verify_report import VerifyPins
@@ -77,6 +77,10 @@ def spec_options(p: argparse.ArgumentParser, explain: bool = False) -> None:
                         "certificate then covers the Hermite curve through those velocities)")
     p.add_argument("--margin", type=float, default=DEFAULT_MARGIN_M,
                    help=f"clearance margin rho, m (default {DEFAULT_MARGIN_M})")
+    p.add_argument("--padding", type=float, default=None, metavar="M",
+                   help="padding added to every enclosure on top of its proven containment of the link meshes, m: "
+                        "the certificate then states that every mesh clears the margin plus this (default: "
+                        + ", ".join(f"{DEFAULT_RUN_PADDING_M[e]:g} for --enclosure {e}" for e in ENCLOSURES) + ")")
     p.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
                    help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     p.add_argument("--dtype", default=DTYPES[0], choices=DTYPES,

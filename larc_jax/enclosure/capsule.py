@@ -58,6 +58,39 @@ class CapsuleModel:
     def n_capsules(self) -> int:
         return len(self.names)
 
+    def with_padding(self, padding_m: float) -> "CapsuleModel":
+        """This model with ``padding_m`` instead of its own padding on every capsule.
+
+        Each radius is its proven core ``radius - self.padding_m`` plus ``padding_m``, rounded up
+        until ``radius' - padding_m`` is at least that core in exact rational arithmetic, and at
+        least the core as float64 computed it for the robot file's proof. So the containment proof
+        (:mod:`larc_jax.enclosure.proof`), which checks the core ``radius - padding_m``, holds for it
+        as for the original. The same padding returns this model, unchanged (bit for bit).
+
+        The motion constants ``motion_a`` stay this model's. The interval test needs them to bound
+        the speed of every *mesh* point (:mod:`larc_jax.enclosure.motion`); a mesh point lies in
+        the core, within ``radius - self.padding_m`` of the segment, for which this model's
+        constants (derived for the larger ``radius``) are already sound. So a mesh point ``x(t)``
+        of the interval lies within ``b`` of the core placed at the midpoint, and a test passed
+        with the padded radius ``r' = core + padding_m`` gives ``dist(x(t), box) > rho +
+        padding_m``: every link mesh grown by ``padding_m`` clears rho, for any ``padding_m``."""
+        from fractions import Fraction
+
+        from ..defaults import check_padding
+
+        padding_m = check_padding(padding_m)
+        if padding_m == self.padding_m:
+            return self
+        radius = np.asarray(self.radius, dtype=np.float64)
+        out = (radius - self.padding_m) + padding_m
+        for c, r in enumerate(radius):
+            core = max(Fraction(float(r)) - Fraction(self.padding_m), Fraction(float(r - self.padding_m)))
+            while Fraction(float(out[c])) - Fraction(padding_m) < core:
+                out[c] = np.nextafter(out[c], np.inf)
+        if not np.isfinite(out).all():
+            raise LarcInputError(f"padding_m {padding_m!r}: gives capsule radii that are not finite")
+        return dataclasses.replace(self, radius=out, padding_m=padding_m)
+
     def without_links(self, robot: Robot, links: Iterable[str], what: str = "ignore_links") -> "CapsuleModel":
         """This model without the capsules of ``links``, recorded in :attr:`excluded_links`.
 

@@ -12,13 +12,11 @@ enclosure the file gives, the hull parts and the stated capsules too.
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
 import os
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
-from ..defaults import DEFAULT_PADDING_M
+from ..defaults import DEFAULT_PADDING_M, check_padding
 from ..errors import LarcInputError
 from ..model.robot import Robot
 from .capsule import CapsuleModel
@@ -26,7 +24,7 @@ from .fit import FittedCapsule, fit_capsules, fit_stated_capsules, verify_contai
 from .hull import choose_hull_parts
 from .robot_file import load_capsules, save_capsules
 
-__all__ = ["FittedRobotFile", "fit_robot_file", "check_padding"]
+__all__ = ["FittedRobotFile", "fit_robot_file"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,15 +55,6 @@ class FittedRobotFile:
         lines.append(f"wrote {self.path}: {len(self.fitted)} capsules; containment proven for "
                      f"{self.elements_proven} mesh elements")
         return lines
-
-
-def check_padding(padding_m, what: str = "padding_m") -> float:
-    """The padding added to fitted radii as a float: a finite number >= 0 m (the robot file
-    refuses any other); else :class:`LarcInputError` naming ``what``."""
-    if isinstance(padding_m, bool) or not isinstance(padding_m, numbers.Real) or \
-            not (math.isfinite(padding_m) and padding_m >= 0):
-        raise LarcInputError(f"{what} {padding_m!r}: must be a finite number >= 0 m (added to fitted radii)")
-    return float(padding_m)
 
 
 def fit_robot_file(

@@ -1,9 +1,9 @@
 """Convex-hull enclosures of the links ("parts"), their containment proof and motion constants.
 
 The hull stage of the certificate (:mod:`larc_jax.leaf.cascade`) encloses each link's collision
-geometry by the convex hulls of one or two *parts*, each padded like the capsules
-(``padding_m``, 1 mm): a part is ``conv(V) + B(0, radius)`` with ``V`` its vertex table in the
-link frame. A hull is the tightest convex enclosure of a part, so a link that clears a box
+geometry by the convex hulls of one or two *parts*, each padded like the capsules (the run's
+``padding_m``, :class:`~larc_jax.run_spec.RunSpec`): a part is ``conv(V) + B(0, radius)`` with
+``V`` its vertex table in the link frame. A hull is the tightest convex enclosure of a part, so a link that clears a box
 by 2 mm is not rejected because a capsule around it is 20 mm fatter.
 
 Parts. A link's elements (:func:`~larc_jax.enclosure.meshes.link_elements`: mesh triangles or
@@ -29,7 +29,11 @@ surface is the boundary of ``conv(H)`` and the intersection of the facets' half-
 * otherwise kept as an extra vertex of ``V`` (never needed on PIPER).
 
 If a check fails the part keeps every point of ``X`` (sound, slower). So ``X`` lies in
-``conv(V) + B(0, slack)`` and the mesh in ``conv(V) + B(0, padding + slack)``.
+``conv(V) + B(0, slack)`` and the mesh in ``conv(V) + B(0, padding + slack)``. The part's radius
+is ``padding + slack + PROOF_ALLOWANCE_M`` (:func:`part_radius`): the checker's independent proof
+(:mod:`larc_jax.enclosure.proof`) adds its own float64 rounding bounds, of order 1e-14 m, to
+every witness distance; 1 nm on top keeps that proof valid with no padding at all, and costs the
+certificate 1 nm of clearance.
 :func:`verify_support` re-checks it independently through support functions (every direction
 of a dense sphere grid: ``max_X n . x <= max_V n . v + slack``).
 
@@ -54,10 +58,19 @@ from .meshes import link_elements, robot_urdf_model
 from .motion import motion_constants_points
 
 __all__ = ["HullModel", "HullPart", "build_hulls", "hull_model", "choose_split", "choose_hull_parts", "support_set",
-           "verify_support", "TAU"]
+           "verify_support", "part_radius", "TAU", "PROOF_ALLOWANCE_M"]
 
 TAU = 1e-9
 """Interior margin (m) beyond which a point is inside the hull by the facet test (module doc)."""
+PROOF_ALLOWANCE_M = 1e-9
+"""Added to every part's radius so that the checker's containment proof, which charges its own
+rounding bounds (~1e-14 m) to each witness distance, holds even with no padding (module doc)."""
+
+
+def part_radius(padding_m: float, slack_m: float) -> float:
+    """The radius of a part: the padding, the construction's containment slack and
+    :data:`PROOF_ALLOWANCE_M` (module docstring), rounded up."""
+    return float(np.nextafter(padding_m + slack_m + PROOF_ALLOWANCE_M, np.inf))
 _CONVEX_TOL = 1e-12
 """Largest excess (m) of a hull vertex over a facet plane accepted as rounding (module doc)."""
 _MIN_GAIN = 0.10
@@ -79,7 +92,8 @@ class HullModel:
     link frame: points of the part, so their distance to a box bounds the part's from *above*
     (the cascade skips a pair whose hull stage cannot pass)."""
     radius: jax.Array
-    """(P,) padding plus the containment slack, m: the part is conv(vertices) + B(0, radius)."""
+    """(P,) padding plus the containment slack plus the proof allowance, m (:func:`part_radius`): the
+    part is conv(vertices) + B(0, radius)."""
     motion_a: jax.Array
     """(P, n) a_pj for each part and active joint (paper eq. 6; larc_jax.enclosure.motion)."""
 
@@ -288,7 +302,7 @@ def build_hulls(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float
     parts = build_parts(robot, hull_parts)
     K = max(len(p.vertices) for p in parts)
     table = np.stack([np.concatenate([p.vertices, np.repeat(p.vertices[:1], K - len(p.vertices), 0)]) for p in parts])
-    radius = np.array([padding_m + p.slack_m for p in parts])
+    radius = np.array([part_radius(padding_m, p.slack_m) for p in parts])
     lo, hi = np.stack([p.vertices.min(axis=0) for p in parts]), np.stack([p.vertices.max(axis=0) for p in parts])
     link_index = tuple(robot.link_index(p.link) for p in parts)
     dirs = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1]] + [[x, y, z] for x in (1, -1) for y in (1, -1) for z in (1, -1)],

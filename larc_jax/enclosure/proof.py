@@ -21,7 +21,8 @@ the loader derives them from the URDF (:mod:`~larc_jax.enclosure.motion`).
   as ``larc fit-capsules`` proves it (the distance and its float64 rounding bound).
 * A hull part ``conv(V) + B(0, r)`` exactly as the cascade uses it (built by
   :func:`~larc_jax.enclosure.hull.hull_model` from the meshes and the file's split planes;
-  ``r`` is ``padding_m`` plus the construction's slack, and is proven whole). A point ``y`` is in
+  ``r`` is ``padding_m`` plus the construction's slack and 1 nm of allowance for this proof's
+  rounding bounds, :func:`~larc_jax.enclosure.hull.part_radius`, and is proven whole). A point ``y`` is in
   it (:class:`HullPartTest`) if
 
   (a) *strictly inside*: Qhull triangulates ``conv(V)``; the triangles, their corners points of
@@ -66,7 +67,7 @@ from ..errors import LarcInputError
 from ..model.robot import Robot
 from .capsule import CapsuleModel
 from .fit import inside_capsule, point_segment_distance
-from .hull import HullModel, build_parts, hull_model
+from .hull import HullModel, build_parts, hull_model, part_radius
 from .meshes import link_collisions, link_elements, links_with_geometry, stroke_shifts
 
 __all__ = ["EnclosureNotProven", "ContainmentProof", "HullPartTest", "prove_enclosures", "prove_robot_file"]
@@ -340,7 +341,7 @@ def prove_robot_file(path=None, *, progress=None) -> ContainmentProof:
     if fingers:
         held = {j: float(robot.q_held[robot.joint_names.index(j)]) for j in robot.stroke_joints}
         robot_s, capsules_s = load_robot_file(path, hold=held)
-        parts = [(p.link, f"'{p.name}' (fingers stated)", p.vertices, capsules_s.padding_m + p.slack_m)
+        parts = [(p.link, f"'{p.name}' (fingers stated)", p.vertices, part_radius(capsules_s.padding_m, p.slack_m))
                  for p in build_parts(robot_s, capsules_s.hull_parts, fingers)]  # as hull_model builds them
         _, e, k = _prove_model(robot_s, capsules_s, parts, source, progress, links=fingers)
         n_elems, n_parts = n_elems + e, n_parts + k

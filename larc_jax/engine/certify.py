@@ -191,8 +191,8 @@ def _items(value, kind, what: str) -> list:
 
 
 SPEC_KEYWORDS = {"method": "method", "margin": "margin_m", "max_depth": "max_depth", "coarse_depth": "coarse_depth",
-                 "dtype": "dtype", "enclosure": "enclosure", "tracking_tolerance": "tracking_tolerance",
-                 "self_collision": "self_collision", "self_margin": "self_margin_m", "self_skip": "self_skip"}
+                 "dtype": "dtype", "enclosure": "enclosure", "padding": "padding_m",
+                 "tracking_tolerance": "tracking_tolerance", "self_collision": "self_collision", "self_margin": "self_margin_m", "self_skip": "self_skip"}
 """The keyword arguments of :func:`certify` that a :class:`RunSpec` holds, and its field for each."""
 
 
@@ -279,6 +279,7 @@ def certify(
     devices=None,
     on_compile: Callable[[bool], None] | None = None,
     enclosure: str = _DEFAULT,
+    padding: float = _DEFAULT,
     hulls: HullModel | None = None,
     tracking_tolerance=_DEFAULT,
     self_collision: bool = _DEFAULT,
@@ -306,8 +307,12 @@ def certify(
         (or loaded from the persistent cache, :mod:`larc_jax.compilation`), ``False`` after.
       enclosure: ``hull`` (default: the cascade of :mod:`larc_jax.leaf.cascade`) or ``capsules``
         (the capsule test alone, the paper's model).
+      padding: the padding on every enclosure beyond its proven containment of the meshes, m
+        (``RunSpec.padding_m``; default: 1 mm for ``capsules``, 0 for ``hull``): a certified
+        trajectory keeps every link mesh more than ``margin + padding`` from every box.
       hulls: the hull parts for the cascade (default: built from the robot's meshes and the
-        robot file's ``hull_parts``, :func:`~larc_jax.enclosure.hull.hull_model`).
+        robot file's ``hull_parts`` with the run's padding, :func:`~larc_jax.enclosure.hull.hull_model`;
+        parts built with another padding are refused).
 
     The gripper: links below held prismatic joints (fingers) are enclosed over their whole
     stroke unless the robot states their value (``load_robot_file(path, hold={...})``); the
@@ -328,11 +333,16 @@ def certify(
     with 64-bit types enabled only inside this call (scoped, not global).
     """
     spec = run_spec(spec, method=method, margin=margin, max_depth=max_depth, coarse_depth=coarse_depth, dtype=dtype,
-                    enclosure=enclosure, tracking_tolerance=tracking_tolerance, self_collision=self_collision,
-                    self_margin=self_margin, self_skip=self_skip)
+                    enclosure=enclosure, padding=padding, tracking_tolerance=tracking_tolerance,
+                    self_collision=self_collision, self_margin=self_margin, self_skip=self_skip)
     method, margin, max_depth, enclosure = Method(spec.method), spec.margin_m, spec.max_depth, spec.enclosure
     trajectories, scenes, dtype = _check_inputs(trajectories, scenes, robot, capsules, spec.dtype, progress)
     spec = _model_spec(spec, robot, capsules)
+    capsules = capsules.with_padding(spec.padding_m)  # the run's padding on every enclosure (RunSpec.padding_m)
+    if hulls is not None and isinstance(hulls, HullModel) and hulls.padding_m != spec.padding_m:
+        raise LarcInputError(f"certify: hulls were built with padding_m {hulls.padding_m!r}, but the run's padding_m "
+                             f"is {spec.padding_m!r} (build them with hull_model(robot, parts, padding_m), or leave "
+                             "hulls out)")
     delta = check_tracking_tolerance(spec.tolerance_arg(), robot)
     pairs = self_pairs(robot, capsules, spec.self_margin_m, spec.self_skip, proven=load_separation(robot)) \
         if spec.self_collision else None

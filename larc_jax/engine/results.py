@@ -125,6 +125,12 @@ class RunAssumptions:
     built by hand. The loose fields (``method``, ``margin_m``...) are its values as the result's
     readers take them."""
 
+    @property
+    def padding_m(self) -> float:
+        """The padding the run added to every enclosure on top of its proven containment, m
+        (``spec.padding_m``; NaN for a result built by hand without a spec)."""
+        return float("nan") if self.spec is None else self.spec.padding_m
+
 
 @dataclasses.dataclass(frozen=True)
 class TrajectoryResult(RunAssumptions):

@@ -8,15 +8,19 @@ What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
 * ``parameters``: the run's :class:`~larc_jax.run_spec.RunSpec` (``result.spec``) as
   :meth:`~larc_jax.run_spec.RunSpec.to_json` writes it (every field; floats as Python's shortest
   repr, exact): method, margin rho, maximum depth, enclosure (``capsules`` or the ``hull``
-  cascade), geometry dtype, velocity mode, tracking tolerance, self-collision test (margin, pairs
+  cascade), the padding on every enclosure (``padding_m``), geometry dtype, velocity mode, tracking tolerance, self-collision test (margin, pairs
   the user skipped), stated joints (``hold``), active joints, links left out (``ignore_links``).
-  ``larc verify`` reads it back with :meth:`~larc_jax.run_spec.RunSpec.from_json` (version 3;
-  version 2 recorded its own parameters and is refused: re-certify).
+  ``larc verify`` reads it back with :meth:`~larc_jax.run_spec.RunSpec.from_json` (version 4;
+  version 2 recorded its own parameters and version 3 no padding, which was then the robot
+  file's: both are refused, re-certify).
 * ``robot``: the robot file (path as given, ``null`` for PIPER's shipped capsule file) and the
   SHA-256 of its bytes, the URDF path and SHA-256, the collision geometry the capsules were
   proven on (every mesh's SHA-256, as :func:`~larc_jax.enclosure.meshes.collision_geometry`
   computes it from the files now), the active joints, the values of the held joints, which of
-  them the user stated (``--hold``: the gripper opening), the capsule names.
+  them the user stated (``--hold``: the gripper opening), the capsule names, and
+  ``enclosures_sha256`` (:func:`enclosures_sha256`): the hash of the enclosures the leaf test
+  used, as placed (the run's padding and tracking growth included; with the cascade, its hull
+  parts too), which ``larc verify`` rebuilds from the files and the parameters and compares.
 * ``scenes``: per scene its file and the SHA-256 of its bytes (``null`` when certified through
   the Python API from a :class:`~larc_jax.model.scene.Scene`), and always ``arrays_sha256``, the
   SHA-256 of the canonical box arrays (:func:`scene_sha256`), and its box names.
@@ -73,10 +77,10 @@ from ..enclosure.tracking import check_tracking_tolerance
 from ..model.urdf import file_sha256
 
 __all__ = ["CERTIFICATE_FORMAT", "CERTIFICATE_VERSION", "certificate", "write_certificate", "hexf", "unhexf",
-           "file_sha256", "trajectory_sha256", "scene_sha256", "robot_file_path"]
+           "file_sha256", "trajectory_sha256", "scene_sha256", "enclosures_sha256", "robot_file_path"]
 
 CERTIFICATE_FORMAT = "larc-certificate"
-CERTIFICATE_VERSION = 3
+CERTIFICATE_VERSION = 4
 
 
 def hexf(x) -> str:
@@ -109,6 +113,22 @@ def scene_sha256(scene: Scene) -> str:
     return _arrays_sha256({"boxes": list(scene.box_names), "n": int(scene.n_boxes)}, scene.lo, scene.hi)
 
 
+def enclosures_sha256(enc) -> str:
+    """SHA-256 of the enclosures a run's leaf test used (a
+    :class:`~larc_jax.leaf.reference.LeafEnclosures`): capsule names and links (JSON), then
+    segment ends, radii and motion constants as little-endian float64; with the cascade also its
+    hull parts' names, links and vertex counts, then their real vertices, radii and motion constants."""
+    caps = enc.capsules
+    head = {"capsules": list(caps.names), "capsule_links": list(caps.link_names)}
+    arrays = [caps.p_link_a, caps.p_link_b, caps.radius, caps.motion_a]
+    if enc.hulls is not None:
+        h = enc.hulls
+        head.update(parts=list(h.names), part_links=list(h.link_names), n_vertices=[int(n) for n in h.n_vertices])
+        arrays += [np.concatenate([np.asarray(h.vertices)[p, :n] for p, n in enumerate(h.n_vertices)]),
+                   h.radius, h.motion_a]
+    return _arrays_sha256(head, *arrays)
+
+
 def robot_file_path(robot_file) -> Path:
     """The robot file a run used: ``robot_file``, or PIPER's shipped capsule file for ``None``."""
     from ..enclosure.robot_file import default_capsule_path
@@ -121,7 +141,7 @@ def _held_joints(robot: Robot) -> dict[str, str]:
             if robot.joint_type[i] != JointType.FIXED and robot.q_index[i] < 0}
 
 
-def _robot_section(robot: Robot, capsules: CapsuleModel, robot_file) -> dict:
+def _robot_section(robot: Robot, capsules: CapsuleModel, robot_file, enc) -> dict:
     path = robot_file_path(robot_file)
     return {
         "file": None if robot_file is None else str(robot_file), "sha256": file_sha256(path),
@@ -130,7 +150,7 @@ def _robot_section(robot: Robot, capsules: CapsuleModel, robot_file) -> dict:
         # Held joints whose value the user stated (--hold): their links are enclosed at it alone.
         "stated_joints": {robot.joint_names[i]: hexf(robot.q_held[i]) for i in range(robot.n_links)
                           if robot.joint_names[i] in robot.stated_joints},
-        "capsules": list(capsules.names),
+        "capsules": list(capsules.names), "enclosures_sha256": enclosures_sha256(enc),
     }
 
 
@@ -198,6 +218,7 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
     mode they were read with (:func:`~larc_jax.read_trajectory`; default: the spec's).
     """
     spec = _certified_spec(result, velocities)
+    capsules = capsules.with_padding(spec.padding_m)  # as certify placed them (RunSpec.padding_m)
     trajectories = [trajectories] if not isinstance(trajectories, (list, tuple)) else list(trajectories)
     per_traj = [scenes] * len(trajectories) if isinstance(scenes, Scene) else list(scenes)
     if len(trajectories) != len(result.ids) or len(per_traj) != len(trajectories):
@@ -244,7 +265,7 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
     return {
         "format": CERTIFICATE_FORMAT, "version": CERTIFICATE_VERSION, "float_encoding": "float.hex",
         "parameters": json.loads(spec.to_json()),
-        "robot": _robot_section(robot, capsules, robot_file),
+        "robot": _robot_section(robot, capsules, robot_file, enc),
         "scenes": scene_docs,
         "trajectories": traj_docs,
     }

@@ -28,7 +28,7 @@ CERTIFICATE_FIELDS = {
     "": {"format", "version", "float_encoding", "parameters", "robot", "scenes", "trajectories"},
     "parameters": {f.name for f in dataclasses.fields(RunSpec)},
     "robot": {"file", "sha256", "urdf", "urdf_sha256", "geometry", "active_joints", "held_joints", "stated_joints",
-              "capsules"},
+              "capsules", "enclosures_sha256"},
     "scenes[]": {"file", "sha256", "arrays_sha256", "name", "boxes"},
     "trajectories[]": _TRAJECTORY,
     "trajectories[].rounding": {"offset_s", "tau_s", "omega_slack", "guard_m", "hull_guard_m"},

@@ -181,6 +181,7 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
     """
     leaf = leaf or choose_leaf(result)
     spec = result.spec or RunSpec(method="reference", margin_m=result.margin_m, enclosure="capsules")
+    capsules = capsules.with_padding(spec.padding_m)  # as certify placed them (RunSpec.padding_m)
     delta = check_tracking_tolerance(spec.tolerance_arg(), robot)
     enc = leaf_enclosures(robot, capsules, spec.enclosure, delta)
     bounds = trajectory_rounding(traj, robot, enc.capsules, spec.dtype, enc.hulls)

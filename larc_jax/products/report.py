@@ -52,6 +52,7 @@ def table_lines(result: DatasetResult) -> list[str]:
     compiling = f" of which {result.compile_time_s:.2f} s compiling" if result.compile_time_s >= 0.005 else ""
     enclosure = "capsules then hulls" if result.enclosure == "hull" else "capsules"
     lines.append(f"{n_ok} of {len(result)} certified ({result.method}, {enclosure}, margin {result.margin_m * 1000:g} mm, "
+                 f"padding {result.padding_m * 1000:g} mm, "
                  f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s{compiling})")
     lines.append(gripper_text(result))
     if result.self_margin_m is not None:
@@ -72,6 +73,7 @@ def result_json(result: DatasetResult, scene_path) -> dict:
 
     return {
         "method": result.method, "enclosure": result.enclosure, "margin_m": result.margin_m,
+        "padding_m": None if math.isnan(result.padding_m) else result.padding_m,
         "max_depth": result.max_depth, "scene": str(scene_path), "excluded_links": list(result.excluded_links),
         "tracking_tolerance": dict(result.tracking_tolerance) or None,
         "self_collision": None if result.self_margin_m is None else {

@@ -13,7 +13,11 @@ call):
    hull parts of the cascade) is proven to contain its link's collision geometry
    (:func:`~larc_jax.enclosure.proof.prove_enclosures`: the hashed meshes and primitives, finger
    strokes from the URDF); the robot file's numbers are not trusted. Motion constants, strokes
-   and rounding guards are derived from the URDF, never read.
+   and rounding guards are derived from the URDF, never read. The enclosures so built, with the
+   certificate's padding and tracking tolerance, must hash to its ``robot.enclosures_sha256``
+   (:func:`~larc_jax.products.certificate.enclosures_sha256`): the certificate names what it was
+   made with, and a checker that would rebuild other enclosures refutes it rather than re-check
+   another claim.
 2. Tiling: the leaves of every trajectory claimed certified are in time order, each the dyadic
    piece ``(depth, index)`` of the horizon (:func:`~larc_jax.leaf.interval.dyadic_ends`, exact), the
    first starts at ``t_0``, each ends where the next starts, the last ends at ``t_K``.
@@ -30,10 +34,12 @@ raises :class:`Refuted` naming the trajectory, the leaf and why (``larc verify``
 missing or malformed file or an unknown format version is :class:`LarcInputError` (exit 2).
 
 Parameters. They are the run's :class:`~larc_jax.run_spec.RunSpec` (``parameters``, format
-version 3), read with :meth:`~larc_jax.run_spec.RunSpec.from_dict` (:meth:`~larc_jax.run_spec.RunSpec.from_json`'s
+version 4), read with :meth:`~larc_jax.run_spec.RunSpec.from_dict` (:meth:`~larc_jax.run_spec.RunSpec.from_json`'s
 rules: every field present, known and valid, else one line naming it); its model fields must be
-the robot loaded (stated joints, active joints). A version-2 certificate (parameters of its own,
-written before the run spec) is refused with a message to re-certify: reading it would keep a
+the robot loaded (stated joints, active joints); the robot file's capsules take the spec's
+``padding_m`` (:meth:`~larc_jax.enclosure.capsule.CapsuleModel.with_padding`) before anything is
+proven or re-checked. A version-2 certificate (parameters of its own, written before the run spec)
+or version-3 one (no padding: the robot file's was used) is refused with a message to re-certify: reading it would keep a
 second parser of parameters alive, and re-certifying costs one ``larc certify`` run.
 
 What was checked is reported (:class:`~larc_jax.products.verify_report.VerifyReport`, also carried by a
@@ -77,7 +83,7 @@ defer_jax()
 
 import numpy as np  # noqa: E402
 
-from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, robot_file_path, scene_sha256,  # noqa: E402
+from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, enclosures_sha256, robot_file_path, scene_sha256,  # noqa: E402
                           trajectory_sha256, unhexf)
 from .certificate_fields import check_certificate_fields  # noqa: E402
 from ..defaults import VELOCITY_MODES  # noqa: E402
@@ -298,8 +304,9 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures
 def _spec(doc: dict, source: str) -> RunSpec:
     """The run spec the certificate records (``parameters``), read by :meth:`RunSpec.from_json`'s
     rules: every field known and valid, or a one-line :class:`LarcInputError`."""
-    if doc.get("version") == 2:
-        raise LarcInputError(f"{source}: a version-2 certificate (parameters of its own, before the run spec); "
+    old = {2: "parameters of its own, before the run spec", 3: "no padding_m: the robot file's padding"}
+    if doc.get("version") in old:
+        raise LarcInputError(f"{source}: a version-{doc['version']} certificate ({old[doc['version']]}); "
                              f"this checker reads version {CERTIFICATE_VERSION}: re-certify (larc certify ... "
                              "--certificate)")
     if doc.get("version") != CERTIFICATE_VERSION:
@@ -421,6 +428,7 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
     _check_ids(traj_docs)
     robot_doc = _get(doc, "robot", source, dict)
     rob, capsules = _load_robot(robot_doc, robot, list(spec.ignore_links))
+    capsules = capsules.with_padding(spec.padding_m)  # the certified run's padding; the proof checks the cores
     est["robot"] = _robot_facts(robot_doc, robot, rob, capsules, spec.ignore_links)
     _check_model(spec, rob)
     delta = check_tracking_tolerance(spec.tolerance_arg(), rob, "parameters.tracking_tolerance")
@@ -434,6 +442,10 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
     except EnclosureNotProven as exc:
         raise Refuted(str(exc)) from None
     enc = leaf_enclosures(rob, capsules, spec.enclosure, delta, hulls)
+    if enclosures_sha256(enc) != _get(robot_doc, "enclosures_sha256", "robot", str):
+        raise Refuted("robot.enclosures_sha256: the enclosures rebuilt from the robot file, the URDF and its meshes "
+                      "with the certificate's parameters (padding, tracking tolerance, held joints, enclosure) are "
+                      "not the ones the certificate was made with")
     pairs = None
     if spec.self_collision:
         pairs = self_pairs(rob, capsules, spec.self_margin_m, list(spec.self_skip), proven=load_separation(rob))

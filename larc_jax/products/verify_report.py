@@ -5,7 +5,7 @@
 its name came from (``supplied``: the caller gave it, ``--robot``/``--scene``/``--trajectory``;
 ``certificate``: the certificate names it; ``shipped``: PIPER's robot file, which a certificate
 names by ``null``) and the SHA-256 of the bytes read; the parameters, which always come from the
-certificate (margin, depth, enclosure, geometry dtype, excluded links, tracking tolerance, the
+certificate (margin, depth, enclosure, padding, geometry dtype, excluded links, tracking tolerance, the
 self-collision margin and the pairs not checked); the robot's held joints and which of them were
 stated; per trajectory its velocity mode. :func:`report_lines` formats it for people,
 :func:`report_json` for machines (``larc verify --json``).
@@ -26,7 +26,7 @@ import math
 import re
 from pathlib import Path
 
-from ..defaults import ENCLOSURES, VELOCITY_MODES, check_depth, check_margin
+from ..defaults import ENCLOSURES, VELOCITY_MODES, check_depth, check_margin, check_padding
 from ..errors import LarcInputError, OneLineError, one_line
 from ..run_spec import DTYPES, RunSpec
 
@@ -111,6 +111,8 @@ class Parameters:
     dtype: str
     enclosure: str
     excluded_links: tuple[str, ...]
+    padding_m: float
+    """Padding on every enclosure beyond its proven containment of the link meshes, m."""
     tracking_tolerance: float | tuple | None
     """As the spec states it; once the robot is loaded, (active joint, delta_j) per joint."""
     self_margin_m: float | None
@@ -124,7 +126,7 @@ class Parameters:
     @classmethod
     def of(cls, spec: RunSpec) -> "Parameters":
         return cls(method=spec.method, margin_m=spec.margin_m, max_depth=spec.max_depth, dtype=spec.dtype,
-                   enclosure=spec.enclosure, excluded_links=spec.ignore_links,
+                   enclosure=spec.enclosure, excluded_links=spec.ignore_links, padding_m=spec.padding_m,
                    tracking_tolerance=spec.tracking_tolerance,
                    self_margin_m=spec.self_margin_m if spec.self_collision else None, self_skip=spec.self_skip,
                    velocities=spec.velocities)
@@ -172,6 +174,8 @@ class VerifyPins:
 
     margin_at_least_m: float | None = None
     """rho >= this, m."""
+    padding_at_least_m: float | None = None
+    """The padding on every enclosure >= this, m."""
     depth_at_most: int | None = None
     """maximum depth <= this."""
     velocities: str | None = None
@@ -208,6 +212,8 @@ class VerifyPins:
         f = _flag
         if self.margin_at_least_m is not None:
             check_margin(self.margin_at_least_m, f("margin_at_least_m"))
+        if self.padding_at_least_m is not None:
+            check_padding(self.padding_at_least_m, f("padding_at_least_m"))
         if self.self_margin_at_least_m is not None:
             from ..leaf.self_collision import check_self_margin  # after larc_jax.products.verify deferred JAX
 
@@ -234,6 +240,7 @@ class VerifyPins:
         g = parser.add_argument_group("pins (a certificate that does not meet one is refuted, naming it) and "
                                       "--allow-finite-difference")
         helps = {"margin_at_least_m": ("M", float, "margin rho >= M, m"),
+                 "padding_at_least_m": ("M", float, "padding on every enclosure >= M, m"),
                  "depth_at_most": ("D", int, "maximum bisection depth <= D"),
                  "velocities": ("MODE", VELOCITY_MODES,
                                 "every trajectory claimed certified read with this velocity mode"),
@@ -271,6 +278,8 @@ class VerifyPins:
         """The pins on the certificate's run spec (before any file is read)."""
         if self.margin_at_least_m is not None and not spec.margin_m >= self.margin_at_least_m:
             self._refute("margin_at_least_m", f"the certificate's margin is {spec.margin_m!r} m")
+        if self.padding_at_least_m is not None and not spec.padding_m >= self.padding_at_least_m:
+            self._refute("padding_at_least_m", f"the certificate's padding is {spec.padding_m!r} m")
         if self.depth_at_most is not None and spec.max_depth > self.depth_at_most:
             self._refute("depth_at_most", f"the certificate's maximum depth is {spec.max_depth}")
         for name in ("enclosure", "dtype"):
@@ -362,7 +371,7 @@ def _tolerance_text(tol) -> str:
 
 def _parameter_lines(p: Parameters) -> list[str]:
     out = [f"  parameters (from the certificate's run spec): method {p.method}, margin {_m(p.margin_m)}, maximum "
-           f"depth {p.max_depth}, enclosure {p.enclosure}, geometry dtype {p.dtype}, velocities {p.velocities}",
+           f"depth {p.max_depth}, enclosure {p.enclosure}, padding {_m(p.padding_m)}, geometry dtype {p.dtype}, velocities {p.velocities}",
            "  tracking tolerance: " + _tolerance_text(p.tracking_tolerance)]
     if p.self_margin_m is None:
         out.append("  self-collision: not certified")

@@ -79,7 +79,8 @@ class ViewItem:
 class ViewData:
     robot: Robot
     planned: CapsuleModel
-    """The capsules as the robot file gives them (before the tracking tolerance)."""
+    """The capsules as the run placed them (the robot file's, with the run's padding; before the
+    tracking tolerance)."""
     items: tuple[ViewItem, ...]
     margin_m: float
     self_margin_m: float | None
@@ -136,6 +137,7 @@ def read_view_certificate(path) -> ViewData:
     more = [x for x in spec.ignore_links if x not in capsules.excluded_links]
     if more:
         capsules = capsules.without_links(robot, more, what="certificate excluded_links:")
+    capsules = capsules.with_padding(spec.padding_m)  # as certified (RunSpec.padding_m)
     delta = check_tracking_tolerance(spec.tolerance_arg(), robot, f"{source}: parameters.tracking_tolerance")
     scenes = []
     for k, sdoc in enumerate(doc["scenes"]):
@@ -178,13 +180,16 @@ def _table_leaves(df, tid: str, capsules: CapsuleModel, scene: Scene, source: st
 
 
 def read_view_files(trajectories, scene, robot_file=None, leaves=None, *, margin_m: float | None = None,
-                    velocities: str = "recorded", enclosure: str | None = None) -> ViewData:
+                    velocities: str = "recorded", enclosure: str | None = None,
+                    padding_m: float | None = None) -> ViewData:
     """Trajectory files, one scene file and the robot file (``None``: PIPER), as ``larc certify``
-    reads them (its defaults: margin, enclosure); ``leaves``: its ``--leaves`` table (CSV or
-    Parquet) for the leaf cover."""
+    reads them (its defaults: margin, enclosure, the enclosure's padding); ``leaves``: its
+    ``--leaves`` table (CSV or Parquet) for the leaf cover."""
     from ..defaults import DEFAULT_ENCLOSURE, DEFAULT_MARGIN_M
 
+    spec = RunSpec(enclosure=enclosure or DEFAULT_ENCLOSURE, padding_m=padding_m)
     robot, capsules = load_robot_file(robot_file)
+    capsules = capsules.with_padding(spec.padding_m)
     sc = read_scene(scene, frame=robot.link_names[0])
     trajs = [read_trajectory_file(p, robot, velocities=velocities).trajectory for p in trajectories]
     df = None
@@ -201,7 +206,7 @@ def read_view_files(trajectories, scene, robot_file=None, leaves=None, *, margin
     items = tuple(ViewItem(t, sc, None if df is None else _table_leaves(df, t.id, capsules, sc, str(leaves)))
                   for t in trajs)
     return ViewData(robot, capsules, items, DEFAULT_MARGIN_M if margin_m is None else margin_m, None,
-                    str(leaves or trajectories[0]), enclosure or DEFAULT_ENCLOSURE)
+                    str(leaves or trajectories[0]), spec.enclosure)
 
 
 def _primitive_mesh(geom):
