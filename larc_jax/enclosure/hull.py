@@ -3,8 +3,8 @@
 The hull stage of the certificate (:mod:`larc_jax.leaf.cascade`) encloses each link's collision
 geometry by the convex hulls of one or two *parts*, each padded like the capsules (the run's
 ``padding_m``, :class:`~larc_jax.run_spec.RunSpec`): a part is ``conv(V) + B(0, radius)`` with
-``V`` its vertex table in the link frame. A hull is the tightest convex enclosure of a part, so a link that clears a box
-by 2 mm is not rejected because a capsule around it is 20 mm fatter.
+``V`` its vertex table in the link frame. A hull is the tightest convex enclosure of a part, so a
+link that clears a box by 2 mm is not rejected because a capsule around it is 20 mm fatter.
 
 Parts. A link's elements (:func:`~larc_jax.enclosure.meshes.link_elements`: mesh triangles or
 primitives, widened over the stroke of an unstated finger joint) go whole into one part, by
@@ -71,6 +71,8 @@ def part_radius(padding_m: float, slack_m: float) -> float:
     """The radius of a part: the padding, the construction's containment slack and
     :data:`PROOF_ALLOWANCE_M` (module docstring), rounded up."""
     return float(np.nextafter(padding_m + slack_m + PROOF_ALLOWANCE_M, np.inf))
+
+
 _CONVEX_TOL = 1e-12
 """Largest excess (m) of a hull vertex over a facet plane accepted as rounding (module doc)."""
 _MIN_GAIN = 0.10

@@ -192,7 +192,8 @@ def _items(value, kind, what: str) -> list:
 
 SPEC_KEYWORDS = {"method": "method", "margin": "margin_m", "max_depth": "max_depth", "coarse_depth": "coarse_depth",
                  "dtype": "dtype", "enclosure": "enclosure", "padding": "padding_m",
-                 "tracking_tolerance": "tracking_tolerance", "self_collision": "self_collision", "self_margin": "self_margin_m", "self_skip": "self_skip"}
+                 "tracking_tolerance": "tracking_tolerance", "self_collision": "self_collision",
+                 "self_margin": "self_margin_m", "self_skip": "self_skip"}
 """The keyword arguments of :func:`certify` that a :class:`RunSpec` holds, and its field for each."""
 
 

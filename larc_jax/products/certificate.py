@@ -8,8 +8,8 @@ What it records (format ``larc-certificate``, :data:`CERTIFICATE_VERSION`):
 * ``parameters``: the run's :class:`~larc_jax.run_spec.RunSpec` (``result.spec``) as
   :meth:`~larc_jax.run_spec.RunSpec.to_json` writes it (every field; floats as Python's shortest
   repr, exact): method, margin rho, maximum depth, enclosure (``capsules`` or the ``hull``
-  cascade), the padding on every enclosure (``padding_m``), geometry dtype, velocity mode, tracking tolerance, self-collision test (margin, pairs
-  the user skipped), stated joints (``hold``), active joints, links left out (``ignore_links``).
+  cascade), the padding on every enclosure (``padding_m``), geometry dtype, velocity mode,
+  tracking tolerance, self-collision test (margin, pairs the user skipped), stated joints (``hold``), active joints, links left out (``ignore_links``).
   ``larc verify`` reads it back with :meth:`~larc_jax.run_spec.RunSpec.from_json` (version 4;
   version 2 recorded its own parameters and version 3 no padding, which was then the robot
   file's: both are refused, re-certify).

@@ -52,7 +52,7 @@ def table_lines(result: DatasetResult) -> list[str]:
     compiling = f" of which {result.compile_time_s:.2f} s compiling" if result.compile_time_s >= 0.005 else ""
     enclosure = "capsules then hulls" if result.enclosure == "hull" else "capsules"
     lines.append(f"{n_ok} of {len(result)} certified ({result.method}, {enclosure}, margin {result.margin_m * 1000:g} mm, "
-                 f"padding {result.padding_m * 1000:g} mm, "
+                 + (f"padding {result.padding_m * 1000:g} mm, " if math.isfinite(result.padding_m) else "") +
                  f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s{compiling})")
     lines.append(gripper_text(result))
     if result.self_margin_m is not None:

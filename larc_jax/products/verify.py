@@ -39,8 +39,9 @@ rules: every field present, known and valid, else one line naming it); its model
 the robot loaded (stated joints, active joints); the robot file's capsules take the spec's
 ``padding_m`` (:meth:`~larc_jax.enclosure.capsule.CapsuleModel.with_padding`) before anything is
 proven or re-checked. A version-2 certificate (parameters of its own, written before the run spec)
-or version-3 one (no padding: the robot file's was used) is refused with a message to re-certify: reading it would keep a
-second parser of parameters alive, and re-certifying costs one ``larc certify`` run.
+or version-3 one (no padding: the robot file's was used) is refused with a message to re-certify:
+reading it would keep a second parser of parameters alive, and re-certifying costs one ``larc
+certify`` run.
 
 What was checked is reported (:class:`~larc_jax.products.verify_report.VerifyReport`, also carried by a
 :class:`Refuted` up to the refutation): every file read with the SHA-256 of its bytes and whether
@@ -83,8 +84,8 @@ defer_jax()
 
 import numpy as np  # noqa: E402
 
-from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, enclosures_sha256, robot_file_path, scene_sha256,  # noqa: E402
-                          trajectory_sha256, unhexf)
+from .certificate import (CERTIFICATE_FORMAT, CERTIFICATE_VERSION, enclosures_sha256, robot_file_path,  # noqa: E402
+                          scene_sha256, trajectory_sha256, unhexf)
 from .certificate_fields import check_certificate_fields  # noqa: E402
 from ..defaults import VELOCITY_MODES  # noqa: E402
 from ..enclosure.meshes import collision_geometry  # noqa: E402
