@@ -22,8 +22,11 @@ really stay from the boxes, and asks which certificates prove it (issue 12):
 3. ``certify`` — LARC on the whole dataset, margin rho = 10 mm, for each configuration of
    :data:`CONFIGS`: the paper's capsules with the gripper unknown (stroke enclosed), capsules
    with the gripper stated (``hold joint7 = joint8 = 0``), and the cascade (capsules, then
-   convex hulls) with the gripper stated, with no padding (its default) and with 1 mm; at depths 9
-   and 12 (the cascade also at 6). ``certification.csv``.
+   convex hulls) with the gripper stated, with no padding (its default) and with 1 mm; and the
+   capsules and the cascade with the swept stage (:mod:`larc_jax.leaf.swept`); at depths 6, 9 and
+   12. ``certification.csv``; and :data:`STAGEB_CONFIGS` on the Stage B dataset
+   (``results/stageB``), whose evaluations are compared with fixed-fine's ``512`` per trajectory
+   (``stageB.csv``).
 4. ``tables`` — ``table.md`` / ``table.csv`` (certified count per true-clearance bin, the
    issue's table), ``goal.md`` (the issue's goal lines), ``blocking.md`` (what still blocks
    the cascade at depth 12 on clear trajectories), ``summary.json``; and
@@ -56,21 +59,34 @@ PADDINGS_MM = (0, 5, 10, 20, 30)
 PAIRS = 10
 MARGIN_M = 0.01
 HOLD = {"joint7": 0.0, "joint8": 0.0}
-CONFIGS = (  # (name, enclosure, gripper stated, depth, padding_m: None = the enclosure's default)
-    ("capsules_d9", "capsules", False, 9, None),
-    ("capsules_d12", "capsules", False, 12, None),
-    ("capsules_stated_d9", "capsules", True, 9, None),
-    ("capsules_stated_d12", "capsules", True, 12, None),
-    ("cascade_pad1_d9", "hull", True, 9, 0.001),
-    ("cascade_pad1_d12", "hull", True, 12, 0.001),
-    ("cascade_d6", "hull", True, 6, None),
-    ("cascade_d9", "hull", True, 9, None),
-    ("cascade_d12", "hull", True, 12, None),
+CONFIGS = (  # (name, enclosure, gripper stated, depth, padding_m: None = the enclosure's default, swept stage)
+    ("capsules_d9", "capsules", False, 9, None, False),
+    ("capsules_d12", "capsules", False, 12, None, False),
+    ("capsules_stated_d6", "capsules", True, 6, None, False),
+    ("capsules_stated_d9", "capsules", True, 9, None, False),
+    ("capsules_stated_d12", "capsules", True, 12, None, False),
+    ("capsules_swept_d6", "capsules", True, 6, None, True),
+    ("capsules_swept_d9", "capsules", True, 9, None, True),
+    ("capsules_swept_d12", "capsules", True, 12, None, True),
+    ("cascade_pad1_d9", "hull", True, 9, 0.001, False),
+    ("cascade_pad1_d12", "hull", True, 12, 0.001, False),
+    ("cascade_d6", "hull", True, 6, None, False),
+    ("cascade_d9", "hull", True, 9, None, False),
+    ("cascade_d12", "hull", True, 12, None, False),
+    ("cascade_swept_d6", "hull", True, 6, None, True),
+    ("cascade_swept_d9", "hull", True, 9, None, True),
+    ("cascade_swept_d12", "hull", True, 12, None, True),
 )
+STAGEB_CONFIGS = ("capsules_stated_d9", "capsules_swept_d9", "cascade_d9", "cascade_swept_d9")
+"""Configurations also run on the Stage B dataset (``stageB.csv``: evaluations against fixed-fine)."""
 LABELS = {"capsules_d9": "capsules, d9", "capsules_d12": "capsules, d12", "capsules_stated_d9": "capsules + gripper, d9",
           "capsules_stated_d12": "capsules + gripper, d12", "cascade_pad1_d9": "cascade + gripper, 1 mm padding, d9",
           "cascade_pad1_d12": "cascade + gripper, 1 mm padding, d12", "cascade_d6": "cascade + gripper, d6",
-          "cascade_d9": "cascade + gripper, d9", "cascade_d12": "cascade + gripper, d12"}
+          "cascade_d9": "cascade + gripper, d9", "cascade_d12": "cascade + gripper, d12",
+          "capsules_stated_d6": "capsules + gripper, d6", "capsules_swept_d6": "capsules + gripper + swept, d6",
+          "capsules_swept_d9": "capsules + gripper + swept, d9", "capsules_swept_d12": "capsules + gripper + swept, d12",
+          "cascade_swept_d6": "cascade + gripper + swept, d6", "cascade_swept_d9": "cascade + gripper + swept, d9",
+          "cascade_swept_d12": "cascade + gripper + swept, d12"}
 """The table's column of each configuration."""
 BINS_MM = (-math.inf, 10, 15, 20, 30, 50, math.inf)
 TRUTH_HZ = 1000.0
@@ -402,10 +418,12 @@ def stage_certify(plan: Plan) -> None:
     from larc_jax.engine.results import STAGES
 
     frames = []
-    for name, enclosure, stated, depth, padding in CONFIGS:
+    stageb = []
+    for name, enclosure, stated, depth, padding, swept in CONFIGS:
         robot, capsules = load_robot_file(None, hold=HOLD if stated else None)
         rows, trajs, scenes = _load_dataset(plan, robot)
-        spec = lj.RunSpec(method="larc", margin_m=MARGIN_M, max_depth=depth, enclosure=enclosure, padding_m=padding)
+        spec = lj.RunSpec(method="larc", margin_m=MARGIN_M, max_depth=depth, enclosure=enclosure, padding_m=padding,
+                          swept=swept)
         res = lj.certify(trajs, scenes, robot, capsules, spec=spec)
         df = res.to_dataframe()
         first = res.first_inconclusive_rows()
@@ -423,18 +441,34 @@ def stage_certify(plan: Plan) -> None:
             "worst_capsule": caps[np.where(worst >= 0, lv.capsule[worst] + 1, 0)],
             "worst_link": [links.get(c, "") for c in caps[np.where(worst >= 0, lv.capsule[worst] + 1, 0)]],
             "worst_stage": np.array(STAGES, dtype=object)[np.where(worst >= 0, lv.stage[worst], 0)],
-            "hull_leaves": np.bincount(lv.traj[lv.stage == 2], minlength=len(trajs)),
+            "swept": swept, "hull_leaves": np.bincount(lv.traj[lv.stage == 2], minlength=len(trajs)),
+            "swept_leaves": np.bincount(lv.traj[lv.stage == 4], minlength=len(trajs)),
             "blocked_capsule": df["blocked_capsule"], "blocked_box": df["blocked_box"],
             "first_blocked_row": first,
         }))
         print(f"[tightness] certify {name}: {int(df['certified'].sum())}/{len(df)} certified, "
               f"{int(df['evaluations'].sum())} evaluations, {res.wall_time_s:.1f} s", flush=True)
+        if name in STAGEB_CONFIGS:
+            from experiments.bench import stageB_dataset
+
+            b_trajs, b_scenes = stageB_dataset(robot)
+            b = lj.certify(b_trajs, b_scenes, robot, capsules, spec=spec)
+            fine = len(b_trajs) * 2**depth
+            stageb.append(dict(config=name, trajectories=len(b_trajs), certified=int(b.certified.sum()),
+                               evaluations=int(b.evaluations.sum()), fine_evaluations=fine,
+                               larc_over_fine=round(int(b.evaluations.sum()) / fine, 4)))
+            print(f"[tightness] Stage B {name}: {stageb[-1]}", flush=True)
     _write_frame(plan.out / "certification.csv", pd.concat(frames, ignore_index=True).drop(columns="first_blocked_row"))
+    _write_frame(plan.out / "stageB.csv", pd.DataFrame(stageb))
 
 
 # ----------------------------------------------------------------------------------------------
 # Stage 4: tables and figure
 # ----------------------------------------------------------------------------------------------
+
+
+DEPTH9 = ("cascade_pad1_d9", "cascade_d9", "cascade_swept_d9")
+"""The columns of goal.md's depth-9 table."""
 
 
 def _bin_labels() -> list[str]:
@@ -496,7 +530,7 @@ def stage_tables(plan: Plan) -> None:
         "within_rho": len(within), "within_rho_certified_any_config": int(within[names].any(axis=1).sum()),
         "clear_by_0p5_to_2mm": len(near),
         "depth9": {n: dict(clear_by_2mm_certified=int(clear2[n].sum()), clear_by_0p5_to_2mm_certified=int(near[n].sum()))
-                   for n in ("cascade_pad1_d9", "cascade_d9")},
+                   for n in DEPTH9},
         "per_config": {n: dict(certified=int(df[n].sum()),
                                clear_by_2mm=int(clear2[n].sum()), clear_by_10mm=int(clear10[n].sum()),
                                within_rho=int(within[n].sum()),
@@ -507,6 +541,9 @@ def stage_tables(plan: Plan) -> None:
     def pct(a, b):
         return f"{100.0 * a / b:.1f} %" if b else "n/a"
 
+    stageb = pd.read_csv(plan.out / "stageB.csv")
+    goal["stageB_larc_over_fine"] = {r["config"]: r["larc_over_fine"] for _, r in stageb.iterrows()}
+
     gl = ["# Goal (issue 12), cascade with the gripper stated, depth <= 12", "",
           "| requirement | target | measured |", "|---|---|---|",
           f"| certified, meshes clear rho by > 2 mm | >= 95 % | {goal['clear_by_2mm_certified']}/{goal['clear_by_2mm']} "
@@ -516,17 +553,20 @@ def stage_tables(plan: Plan) -> None:
           f"| certified, meshes within rho (any configuration) | 0 | {goal['within_rho_certified_any_config']} of "
           f"{goal['within_rho']} |", "",
           "**Depth 9 (issue 21), cascade with the gripper stated**", "",
-          "| requirement | target | 1 mm padding | no padding (the cascade's default) |", "|---|---|---|---|",
+          "| requirement | target | 1 mm padding | no padding (the cascade's default) | no padding + swept stage |",
+          "|---|---|---|---|---|",
           "| certified, meshes clear rho by > 2 mm | >= 95 % | " + " | ".join(
               f"{goal['depth9'][n]['clear_by_2mm_certified']}/{goal['clear_by_2mm']} = "
               f"{pct(goal['depth9'][n]['clear_by_2mm_certified'], goal['clear_by_2mm'])}"
-              for n in ("cascade_pad1_d9", "cascade_d9")) + " |",
+              for n in DEPTH9) + " |",
           "| certified, meshes clear rho by 0.5-2 mm | >= 80 % | " + " | ".join(
               f"{goal['depth9'][n]['clear_by_0p5_to_2mm_certified']}/{goal['clear_by_0p5_to_2mm']} = "
               f"{pct(goal['depth9'][n]['clear_by_0p5_to_2mm_certified'], goal['clear_by_0p5_to_2mm'])}"
-              for n in ("cascade_pad1_d9", "cascade_d9")) + " |", "",
+              for n in DEPTH9) + " |", "",
           "Interval evaluations per configuration (whole dataset): "
-          + ", ".join(f"{n} {goal['per_config'][n]['evaluations']}" for n in names) + ".", ""]
+          + ", ".join(f"{n} {goal['per_config'][n]['evaluations']}" for n in names) + ".", "",
+          "Stage B (160 trajectories, depth 9), interval evaluations LARC / fixed-fine: "
+          + ", ".join(f"{n} {goal['stageB_larc_over_fine'][n]:.3f}" for n in STAGEB_CONFIGS) + ".", ""]
     atomic_write_text(plan.out / "goal.md", "\n".join(gl))
 
     # What blocks the cascade at depth 12 on trajectories that really clear rho.
@@ -607,9 +647,11 @@ def main(argv=None) -> int:
     data = [r["path"] for r in plan.trajectories()]
     _stage(out, "truth", _fingerprint(data + me + [ROOT / "experiments" / "collision.py"], params),
            [out / "truth.csv"], lambda: stage_truth(plan, args.workers), args.force)
-    _stage(out, "certify", _fingerprint(data + lib + me, dict(params, configs=CONFIGS)),
-           [out / "certification.csv"], lambda: stage_certify(plan), args.force)
-    _stage(out, "tables", _fingerprint([out / "truth.csv", out / "certification.csv"] + me, params),
+    stageb_data = sorted((ROOT / "results" / "stageB" / "dataset" / "trajectories").rglob("*.yaml"))
+    _stage(out, "certify", _fingerprint(data + stageb_data + lib + me, dict(params, configs=CONFIGS)),
+           [out / "certification.csv", out / "stageB.csv"], lambda: stage_certify(plan), args.force)
+    _stage(out, "tables", _fingerprint([out / "truth.csv", out / "certification.csv", out / "stageB.csv"] + me,
+                                       params),
            [out / "table.md", out / "certified_vs_clearance.png"], lambda: stage_tables(plan), args.force)
     print(f"[tightness] all stages in {time.perf_counter() - t0:.1f} s; results in {out}", flush=True)
     print((out / "table.md").read_text(), flush=True)

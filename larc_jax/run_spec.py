@@ -126,6 +126,10 @@ class RunSpec:
     ``margin_m`` from every obstacle. None (not stated): the enclosure's default,
     :data:`~larc_jax.defaults.DEFAULT_RUN_PADDING_M` (1 mm for ``capsules``, 0 for ``hull``); the
     spec then records the value."""
+    swept: bool = False
+    """Whether the swept stage (:mod:`larc_jax.leaf.swept`) runs where the midpoint tests leave a
+    leaf open: each enclosure's hull at the two ends of the interval grown by a second-order
+    motion radius."""
     dtype: str = DTYPES[0]
     """Geometry dtype; ``method="reference"`` always runs float64 (normalised here)."""
     velocities: str = VELOCITY_MODES[0]
@@ -154,6 +158,8 @@ class RunSpec:
         put("enclosure", check_enclosure(self.enclosure, "enclosure"))
         put("padding_m", DEFAULT_RUN_PADDING_M[self.enclosure] if self.padding_m is None
             else check_padding(self.padding_m, "padding_m"))
+        if not isinstance(self.swept, bool):
+            raise LarcInputError(f"swept {self.swept!r}: must be true or false")
         dtype = _dtype(self.dtype)
         put("dtype", DTYPES[0] if self.method == "reference" else dtype)  # the reference is NumPy float64
         put("velocities", _choice(self.velocities, VELOCITY_MODES, "velocities"))

@@ -117,19 +117,23 @@ def short_trajectory(rng, robot, k):
 DEPTH = 6
 
 
-@pytest.fixture(scope="module")
-def dataset(model):
-    """20 one-second trajectories, each with a box the hulls clear by rho + 0.5..12 mm (or, in a
-    few, a box the arm sweeps through)."""
-    robot, capsules, hulls = model
-    rng = np.random.default_rng(12)
+def near_miss_dataset(robot, capsules, hulls, n: int, lo_mm: float, hi_mm: float, seed: int = 12):
+    """``n`` one-second trajectories, each with a box the hulls clear by rho + lo_mm..hi_mm (or, in
+    a few, a box the arm sweeps through)."""
+    rng = np.random.default_rng(seed)
     measure = HullClearance(robot, hulls)
     trajs, scenes = [], []
-    for k in range(20):
+    for k in range(n):
         t = short_trajectory(rng, robot, k)
         trajs.append(t)
-        scenes.append(measure.place(t, near_scene(rng, robot, capsules, t, k, n_boxes=1), rng, 0.5, 12)[0])
+        scenes.append(measure.place(t, near_scene(rng, robot, capsules, t, k, n_boxes=1), rng, lo_mm, hi_mm)[0])
     return trajs, scenes
+
+
+@pytest.fixture(scope="module")
+def dataset(model):
+    """20 trajectories, boxes at rho + 0.5..12 mm from the hulls."""
+    return near_miss_dataset(*model, 20, 0.5, 12)
 
 
 @pytest.fixture(scope="module")

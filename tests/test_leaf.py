@@ -80,4 +80,4 @@ def test_stack_take_put():
     np.testing.assert_array_equal(table.take([1]).clearance_m, [-1.0])
     np.testing.assert_array_equal(table.put([1], box_record(np.array([3.0]), np.zeros(1), [0], [0], Stage.HULL))
                                   .stage, [Stage.CAPSULE, Stage.HULL])
-    assert [s.label for s in Stage] == ["", "capsule", "hull", "self"]
+    assert [s.label for s in Stage] == ["", "capsule", "hull", "self", "swept"]

@@ -145,7 +145,8 @@ def _certificate_options(args):
     tolerance = getattr(args, "tracking_tolerance", None)
     try:
         return RunSpec(method=args.method, margin_m=args.margin, max_depth=args.max_depth, enclosure=args.enclosure,
-                       padding_m=getattr(args, "padding", None), velocities=args.velocities, dtype=args.dtype, self_collision=self_collision,
+                       padding_m=getattr(args, "padding", None), swept=bool(getattr(args, "swept", False)),
+                       velocities=args.velocities, dtype=args.dtype, self_collision=self_collision,
                        self_margin_m=0.0 if self_margin is None else self_margin, self_skip=self_skip,
                        tracking_tolerance=None if tolerance is None else parse_tracking_tolerance(tolerance),
                        hold=parse_hold(getattr(args, "hold", None)),

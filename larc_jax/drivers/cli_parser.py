@@ -81,6 +81,10 @@ def spec_options(p: argparse.ArgumentParser, explain: bool = False) -> None:
                    help="padding added to every enclosure on top of its proven containment of the link meshes, m: "
                         "the certificate then states that every mesh clears the margin plus this (default: "
                         + ", ".join(f"{DEFAULT_RUN_PADDING_M[e]:g} for --enclosure {e}" for e in ENCLOSURES) + ")")
+    p.add_argument("--swept", action="store_true",
+                   help="add the swept test where the midpoint tests leave an interval open: each enclosure's hull "
+                        "at the interval's two ends, grown by a radius that shrinks with the square of the interval "
+                        "(certifies closer passes at a given depth)")
     p.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
                    help=f"maximum bisection depth (default {DEFAULT_MAX_DEPTH})")
     p.add_argument("--dtype", default=DTYPES[0], choices=DTYPES,

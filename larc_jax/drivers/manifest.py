@@ -53,8 +53,8 @@ __all__ = [
 
 STATE_FILE = "_larc_manifest.json"
 MANIFEST_RESULT_COLUMNS = ("row", "id", "trajectory", "scene", "certified", "evaluations", "min_clearance_m",
-                           "guard_m", "duration_s", "method", "enclosure", "margin_m", "padding_m", "max_depth",
-                           "blocked_t0", "blocked_t1",
+                           "guard_m", "duration_s", "method", "enclosure", "margin_m", "padding_m", "swept",
+                           "max_depth", "blocked_t0", "blocked_t1",
                            "blocked_capsule", "blocked_box", "error")
 """Columns of a manifest results dataset: one row per manifest row."""
 
@@ -212,7 +212,7 @@ def certify_chunk(job: ManifestJob, k: int, rows: list[ManifestRow],
     })
     out = pd.concat([f for f in (frame, bad_frame) if f is not None and len(f)], ignore_index=True) \
         if (frame is not None and len(frame)) or len(bad_frame) else bad_frame
-    for col in ("method", "enclosure", "margin_m", "padding_m", "max_depth"):
+    for col in ("method", "enclosure", "margin_m", "padding_m", "swept", "max_depth"):
         out[col] = getattr(spec, col)
     out["error"] = [errors.get(int(r), "") for r in out["row"]]
     for col, fill in (("guard_m", np.nan), ("blocked_t0", np.nan), ("blocked_t1", np.nan), ("blocked_capsule", ""),

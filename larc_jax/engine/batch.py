@@ -42,6 +42,8 @@ from ..leaf.placement import place
 from ..model.robot import Robot
 from ..model.scene import Scene
 from ..leaf.self_collision import SelfPairs, self_stage
+from ..leaf.swept import (SweptPlacement, SweptTables, swept_capsule_clearance, swept_links, swept_part_clearance,
+                          swept_placement, swept_record)
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
@@ -174,6 +176,34 @@ def _self_intervals(robot, capsules, splines, bounds, traj, a, b, self_check):
     return jax.vmap(one)(traj, a, b)
 
 
+@jax.jit
+def _swept_intervals(robot, capsules, hulls, tables, splines, obstacles, bounds, traj, scene, a, b, margin):
+    """Step 1 of the swept stage (:func:`~larc_jax.leaf.swept.swept_placement`) on F intervals, as
+    ``_evaluate_intervals``: the fields of :class:`~larc_jax.leaf.swept.SweptPlacement` as a tuple."""
+
+    def one(k, s, ai, bi):
+        bnd = jax.tree.map(lambda x: x[k], bounds)
+        d = swept_placement(robot, capsules, hulls, tables, SplineRow(splines, k), obstacles.take(s), ai, bi, margin,
+                            bnd)
+        return tuple(getattr(d, f.name) for f in dataclasses.fields(d))
+
+    return jax.vmap(one)(traj, scene, a, b)
+
+
+@jax.jit
+def _swept_capsules(capsules, capsule, R_ends, t_ends, items, swept_e, margin):
+    """Step 1b of the swept stage on T (capsule, obstacle) pairs (``items``: one obstacle per pair)."""
+    return jax.vmap(swept_capsule_clearance, in_axes=(None, 0, 0, 0, 0, 0, None))(
+        capsules, capsule, R_ends, t_ends, items, swept_e, margin)
+
+
+@jax.jit
+def _swept_parts(hulls, part, T_mid, R_ends, t_ends, items, motion_b, swept_e, margin):
+    """Step 2 of the swept stage on T (part, obstacle) pairs (``items``: one obstacle per pair)."""
+    return jax.vmap(swept_part_clearance, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, None))(
+        hulls, part, T_mid, R_ends, t_ends, items, motion_b, swept_e, margin)
+
+
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
 
 
@@ -224,6 +254,8 @@ class Batch:
     """Capsule pairs of the self test (:mod:`larc_jax.leaf.self_collision`); None: obstacles only."""
     self_skip: np.ndarray | None = None
     """(padded trajectories, P) bool: pairs proven apart for each trajectory (:meth:`SelfPairs.skip_mask`)."""
+    swept: SweptTables | None = None
+    """The swept stage's chain tables (:mod:`larc_jax.leaf.swept`); None: no swept stage."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -326,13 +358,52 @@ class Batch:
         """The leaf test (:mod:`larc_jax.leaf.record`) on every interval: ``(a, b, record)`` as
         :meth:`evaluate`, with the hull stage (larc_jax.leaf.cascade) where
         :func:`~larc_jax.leaf.record.needs_hull` (the capsules fail a box and the self test, if any,
-        passes); ``record.stage`` is CAPSULE, HULL or NONE (``stage > 0`` iff ``g > guard``).
-        Without :attr:`hulls`, the capsule test alone."""
+        passes), then the swept stage (:mod:`larc_jax.leaf.swept`, with :attr:`swept`) where the leaf
+        is still open; ``record.stage`` is CAPSULE, HULL, SWEPT or NONE (``stage > 0`` iff ``g >
+        guard``). Without :attr:`hulls`, no hull stage; without :attr:`swept`, no swept stage."""
         a, b, record, self_test = self._tests(traj, depth, index, on_chunk, on_compile)
         open_ = np.flatnonzero(needs_hull(record, self_test))
         if self.hulls is not None and len(open_):
             record = record.put(open_, self._hull_stage(traj[open_], a[open_], b[open_], on_compile))
+        open_ = np.flatnonzero(needs_hull(record, self_test))
+        if self.swept is not None and len(open_):
+            record = record.put(open_, self._swept_stage(traj[open_], a[open_], b[open_], on_compile))
         return a, b, compose(record, self_test)
+
+    def _swept_stage(self, tr, a, b, on_compile) -> LeafRecord:
+        """The swept stage (:mod:`larc_jax.leaf.swept`) on the intervals ``(tr, a, b)``."""
+        ar, br = self._rebased(tr, a, b)
+        call = _swept_intervals if len(self.devices) > 1 else _cached(_swept_intervals)
+        parts_call = _swept_parts if len(self.devices) > 1 else _cached(_swept_parts)
+        caps_call = _swept_capsules if len(self.devices) > 1 else _cached(_swept_capsules)
+        d = SweptPlacement(*self._bucketed(
+            lambda t, sc, x, y: _call(call, (self.robot, self.capsules, self.hulls, self.swept, self.splines,
+                                             self.obstacles, self.bounds, t, sc, x, y, self.margin), on_compile),
+            [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
+        links = swept_links(self.capsules, None if self.hulls is None else Links.of(self.capsules, self.hulls))
+        G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
+
+        def clear_capsules(triples):
+            i, c, k = triples.T
+            leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one item per triple
+            return self._bucketed(
+                lambda cc, R, t, e, *it: _call(caps_call, (self.capsules, cc, R, t, jax.tree.unflatten(tree, it), e,
+                                                           self.margin), on_compile),
+                [c, d.R_capsule[i, c], d.t_capsule[i, c], d.e_capsule[i, c], *leaves], buckets=CASCADE_BUCKETS)
+
+        def clear_parts(triples):
+            i, p, k = triples.T
+            leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one item per triple
+            g = self._bucketed(
+                lambda pp, Tm, R, t, mb, e, *it: _call(parts_call, (self.hulls, pp, Tm, R, t, jax.tree.unflatten(tree, it),
+                                                                    mb, e, self.margin), on_compile),
+                [p, d.T_mid[i, p], d.R_ends[i, p], d.t_ends[i, p], d.motion_b[i, p], d.swept_e[i, p], *leaves],
+                buckets=CASCADE_BUCKETS)
+            return g, np.asarray(self.bounds.hull_guard_m)[tr][i, p]
+
+        g, guard, cap, box, _ = swept_record(links, d.g_capsule, G_c, self.hulls is not None, clear_capsules,
+                                             clear_parts)
+        return box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.SWEPT)
 
     def _hull_stage(self, tr, a, b, on_compile) -> LeafRecord:
         """The hull stage (steps 2-5 of larc_jax.leaf.cascade) on the intervals ``(tr, a, b)``."""
@@ -366,7 +437,8 @@ class Batch:
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
             margin: float, dtype, bounds: Sequence[RoundingBounds], devices=None,
             on_compile: Callable[[bool], None] | None = None, hulls: HullModel | None = None,
-            self_pairs: SelfPairs | None = None, self_skip: Sequence[np.ndarray] | None = None) -> Batch:
+            self_pairs: SelfPairs | None = None, self_skip: Sequence[np.ndarray] | None = None,
+            swept: SweptTables | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene and one
     :func:`~larc_jax.leaf.interval.trajectory_rounding` per trajectory).
 
@@ -399,4 +471,5 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         devices=tuple(jax.devices() if devices is None else devices),
         hulls=None if hulls is None else _hulls_geometry(hulls, dtype), self_pairs=self_pairs,
         self_skip=None if self_skip is None else np.stack(list(self_skip) + list(self_skip[:1]) * n_pad),
+        swept=swept,
     )

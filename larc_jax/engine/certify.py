@@ -191,7 +191,7 @@ def _items(value, kind, what: str) -> list:
 
 
 SPEC_KEYWORDS = {"method": "method", "margin": "margin_m", "max_depth": "max_depth", "coarse_depth": "coarse_depth",
-                 "dtype": "dtype", "enclosure": "enclosure", "padding": "padding_m",
+                 "dtype": "dtype", "enclosure": "enclosure", "padding": "padding_m", "swept": "swept",
                  "tracking_tolerance": "tracking_tolerance", "self_collision": "self_collision",
                  "self_margin": "self_margin_m", "self_skip": "self_skip"}
 """The keyword arguments of :func:`certify` that a :class:`RunSpec` holds, and its field for each."""
@@ -281,6 +281,7 @@ def certify(
     on_compile: Callable[[bool], None] | None = None,
     enclosure: str = _DEFAULT,
     padding: float = _DEFAULT,
+    swept: bool = _DEFAULT,
     hulls: HullModel | None = None,
     tracking_tolerance=_DEFAULT,
     self_collision: bool = _DEFAULT,
@@ -311,6 +312,8 @@ def certify(
       padding: the padding on every enclosure beyond its proven containment of the meshes, m
         (``RunSpec.padding_m``; default: 1 mm for ``capsules``, 0 for ``hull``): a certified
         trajectory keeps every link mesh more than ``margin + padding`` from every box.
+      swept: run the swept stage (:mod:`larc_jax.leaf.swept`; ``RunSpec.swept``, default off) where
+        the midpoint tests leave a leaf open: a second-order enclosure of each link's motion.
       hulls: the hull parts for the cascade (default: built from the robot's meshes and the
         robot file's ``hull_parts`` with the run's padding, :func:`~larc_jax.enclosure.hull.hull_model`;
         parts built with another padding are refused).
@@ -334,7 +337,7 @@ def certify(
     with 64-bit types enabled only inside this call (scoped, not global).
     """
     spec = run_spec(spec, method=method, margin=margin, max_depth=max_depth, coarse_depth=coarse_depth, dtype=dtype,
-                    enclosure=enclosure, padding=padding, tracking_tolerance=tracking_tolerance,
+                    enclosure=enclosure, padding=padding, swept=swept, tracking_tolerance=tracking_tolerance,
                     self_collision=self_collision, self_margin=self_margin, self_skip=self_skip)
     method, margin, max_depth, enclosure = Method(spec.method), spec.margin_m, spec.max_depth, spec.enclosure
     trajectories, scenes, dtype = _check_inputs(trajectories, scenes, robot, capsules, spec.dtype, progress)
@@ -351,7 +354,7 @@ def certify(
     skips = None
     if check_pairs is not None:  # pairs proven apart where each trajectory's curve goes
         skips = [check_pairs.skip_mask(*curve_ranges(t, delta)) for t in trajectories]
-    enc = leaf_enclosures(robot, capsules, enclosure, delta, hulls)  # radii grown by sum_j a_lj delta_j
+    enc = leaf_enclosures(robot, capsules, enclosure, delta, hulls, spec.swept)  # radii grown by sum_j a_lj delta_j
     planned_capsules, capsules, hulls = capsules, enc.capsules, enc.hulls
     start = time.perf_counter()
     names = _Names(scenes)
@@ -370,7 +373,7 @@ def certify(
                 part, n_part = names.part(sl), len(trajectories[sl])
                 batch = prepare(trajectories[sl], scenes[sl], robot, capsules, margin, dtype, bounds[sl], devices,
                                 on_compile, hulls, self_pairs=check_pairs,
-                                self_skip=None if skips is None else skips[sl])
+                                self_skip=None if skips is None else skips[sl], swept=enc.swept)
                 if method == Method.LARC:
                     f, lv = _larc_batched(batch, n_part, part, max_depth, progress, on_compile)
                 else:

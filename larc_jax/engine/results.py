@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 __all__ = ["Leaf", "LeafTable", "RunAssumptions", "TrajectoryResult", "DatasetResult", "LEAF_COLUMNS", "RESULT_COLUMNS",
            "STAGES"]
 
-STAGES = tuple(s.label for s in (Stage.NONE, Stage.CAPSULE, Stage.HULL))
+STAGES = tuple(Stage(i).label for i in range(len(Stage)))
 """Which test passed a leaf, by code (:class:`~larc_jax.leaf.record.Stage`): 0 none (not certified), 1
 the capsule test, 2 the hull test of the cascade (larc_jax.leaf.cascade)."""
 
@@ -87,7 +87,7 @@ class LeafTable:
     box: np.ndarray
     other_capsule: np.ndarray
     stage: np.ndarray
-    """int8 index into :data:`STAGES`: 0 none, 1 capsule test, 2 hull test."""
+    """int8 index into :data:`STAGES`: 0 none, 1 capsule test, 2 hull test, 4 swept test."""
 
     def __len__(self) -> int:
         return len(self.traj)

@@ -57,7 +57,7 @@ from ..obstacles import scene_obstacles
 from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
-           "hull_pair_clearance_np", "Links", "select_pairs", "combine", "cascade_np"]
+           "hull_pair_clearance_np", "polytope_clearance", "polytope_clearance_np", "Links", "select_pairs", "combine", "cascade_np"]
 
 @pytree_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -105,9 +105,19 @@ def hull_pair_clearance(hulls: HullModel, part, T_part, item, motion_b, margin) 
         one obstacle (:meth:`~larc_jax.obstacles.ObstacleSet.take`); motion_b: the part's motion
         radius b_p(I), m (float64); margin: rho, m.
     """
-    eps = float(jnp.finfo(motion_b.dtype).eps)
-    lb = item.polytope_lower_bound(hulls.vertices, part, hulls.centre[part], T_part[:, :3], T_part[:, 3])
-    return lb.astype(motion_b.dtype) - _shell(hulls.radius[part], motion_b, margin, eps)
+    return polytope_clearance(hulls.vertices, part, hulls.centre[part], hulls.radius[part], T_part[:, :3],
+                              T_part[:, 3], item, motion_b, margin)
+
+
+def polytope_clearance(vertices, part, centre, radius, R, t, item, motion, margin) -> jax.Array:
+    """``lb(conv(R vertices[part] + t), item) - (radius + motion + rho) (1 + 2 eps)``: the clearance
+    of a polytope placed by ``R, t`` ((3, 3), (3,); or a stack of placements, the hull of their
+    union: :mod:`larc_jax.obstacles.polytope`) and grown by ``radius`` (m) and a motion radius
+    ``motion`` (m, float64), to one obstacle (kernel; the hull test and the swept test,
+    :mod:`larc_jax.leaf.swept`)."""
+    eps = float(jnp.finfo(motion.dtype).eps)
+    lb = item.polytope_lower_bound(vertices, part, centre, R, t)
+    return lb.astype(motion.dtype) - _shell(radius, motion, margin, eps)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -140,11 +150,17 @@ def interval_pairs_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, tr
 
 def hull_pair_clearance_np(hulls: HullModel, part: int, T_part, item, motion_b: float, margin: float) -> float:
     """NumPy float64 reference of :func:`hull_pair_clearance` (``item``: one obstacle)."""
-    eps = float(np.finfo(np.float64).eps)
-    V = np.asarray(hulls.vertices[part], np.float64)
     T_part = np.asarray(T_part, np.float64)
-    lb = item.polytope_lower_bound_np(V, np.asarray(hulls.centre[part]), T_part[:, :3], T_part[:, 3])
-    return lb - _shell(float(hulls.radius[part]), motion_b, margin, eps)
+    return polytope_clearance_np(hulls.vertices[part], hulls.centre[part], float(hulls.radius[part]), T_part[:, :3],
+                                 T_part[:, 3], item, motion_b, margin)
+
+
+def polytope_clearance_np(V, centre, radius: float, R, t, item, motion: float, margin: float) -> float:
+    """NumPy float64 reference of :func:`polytope_clearance` (``V``: the polytope's points)."""
+    eps = float(np.finfo(np.float64).eps)
+    lb = item.polytope_lower_bound_np(np.asarray(V, np.float64), np.asarray(centre, np.float64),
+                                      np.asarray(R, np.float64), np.asarray(t, np.float64))
+    return lb - _shell(radius, motion, margin, eps)
 
 
 # ----------------------------------------------------------------------------------------------

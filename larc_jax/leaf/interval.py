@@ -55,6 +55,11 @@ P. Curve values (float64).
       ``<= 16u V_kj``, ``V_kj = |v_kj| + |v_k+1,j| + 1.5 |d_kj|``. A vertex found off by ``ds``
       changes the value by ``c2 ds^2 <= u V`` (or ``|c2| <= u V`` and the quadratic is linear to
       ``u V``). Hence the true maximum is ``<= omega_j + slack_j``, ``slack_j = K_SPEED u V_j``.
+  P2'. Acceleration (the swept test, :mod:`larc_jax.leaf.swept`): (**) of
+      :mod:`larc_jax.model.hermite` has coefficients ``<= 4, 4, 6`` on ``[0, 1]``, so each end value
+      is off by ``<= 16u A_kj``, ``A_kj = (4 |v_kj| + 4 |v_k+1,j| + 6 |d_kj|) / H_k``, and an end
+      found off by ``ds`` changes it by ``<= 12 ds A_kj``: the true maximum is ``<= alpha_j +
+      accel_slack_j``, ``accel_slack_j = K_SPEED u A_j``.
   P3. Motion radius: ``b_l = fl(h_cov * sum_j a_lj (omega_j + slack_j)) * (1 + (n + 64) eps)``:
       n non-negative products and sums (``(n + 2) u``), and the ``a_lj`` themselves, computed in
       float64 by :func:`~larc_jax.enclosure.motion.motion_constants` (``<= 64 u`` relative).
@@ -219,6 +224,8 @@ class RoundingBounds:
     """Time slack tau (T4, T5), s."""
     omega_slack: jax.Array
     """(n,) speed slack (P2), rad/s or m/s."""
+    accel_slack: jax.Array
+    """(n,) acceleration slack (P2'), rad/s^2 or m/s^2."""
     guard_m: jax.Array
     """(C,) rounding guard ``G_l`` of each capsule, m."""
     hull_guard_m: jax.Array
@@ -278,6 +285,7 @@ def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.flo
         Q = (np.abs(q[:-1]) + np.abs(q[1:]) + H * (v[:-1] + v[1:])).max(axis=0)  # P1
         d = np.abs(np.diff(q, axis=0)) / H
         V = (v[:-1] + v[1:] + 1.5 * d).max(axis=0)  # P2
+        A = ((4 * v[:-1] + 4 * v[1:] + 6 * d) / H).max(axis=0)  # P2'
         E = K_POS * u * Q + (2.0 * ug * Q if ug > u else 0.0)
     ends = np.maximum(np.linalg.norm(np.asarray(capsules.p_link_a, np.float64), axis=1),
                       np.linalg.norm(np.asarray(capsules.p_link_b, np.float64), axis=1))
@@ -288,7 +296,8 @@ def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.flo
         hull_guard = _guards(robot, hulls.link_index, v_max, hulls.motion_a, E, Q, ug)
     return RoundingBounds(
         offset_s=np.float64(offset), t_start=np.float64(tr[0]), t_end=np.float64(tr[-1]),
-        tau_s=np.float64(K_TIME * u * t_mag), omega_slack=K_SPEED * u * V, guard_m=guard,
+        tau_s=np.float64(K_TIME * u * t_mag), omega_slack=K_SPEED * u * V, accel_slack=K_SPEED * u * A,
+        guard_m=guard,
         hull_guard_m=hull_guard,
     )
 

@@ -6,6 +6,9 @@ then put through the stages the run asked for, each a one-item kernel with a Num
 - :attr:`Stage.CAPSULE`: the capsule-box test (:func:`~larc_jax.leaf.interval.evaluate_placed`);
 - :attr:`Stage.HULL`: where the capsules fail a box (and the self test passes), the convex-hull
   test of the link parts (:mod:`larc_jax.leaf.cascade`);
+- :attr:`Stage.SWEPT`: where the leaf is still open (and the self test passes), the swept test
+  (:mod:`larc_jax.leaf.swept`): every enclosure's midpoint and swept clearances, the better of
+  the two per pair (run with ``RunSpec.swept``);
 - :attr:`Stage.SELF`: the self-collision test of the checked capsule pairs
   (:func:`~larc_jax.leaf.self_collision.self_stage`), which can only veto a leaf.
 
@@ -28,13 +31,14 @@ __all__ = ["Stage", "LeafColumn", "LeafRecord", "box_record", "self_record", "pa
 
 class Stage(enum.IntEnum):
     """A stage of the leaf test. A leaf's recorded stage (the ``stage`` column) is the one that
-    passed it: NONE (not certified), CAPSULE or HULL; SELF only vetoes, so it is never recorded
-    (a record decided by the self test is told by ``other >= 0``)."""
+    passed it: NONE (not certified), CAPSULE, HULL or SWEPT; SELF only vetoes, so it is never
+    recorded (a record decided by the self test is told by ``other >= 0``)."""
 
     NONE = 0
     CAPSULE = 1
     HULL = 2
     SELF = 3
+    SWEPT = 4
 
     @property
     def label(self) -> str:
@@ -98,7 +102,7 @@ class LeafRecord(NamedTuple):
 
 
 def box_record(g, guard, capsule, box, stage: Stage, xp=np) -> LeafRecord:
-    """The record of an enclosure-box stage (CAPSULE or HULL): passed iff ``g > guard``."""
+    """The record of an enclosure-box stage (CAPSULE, HULL or SWEPT): passed iff ``g > guard``."""
     return LeafRecord(g, guard, capsule, box, xp.full(xp.shape(g), -1, np.int64),
                       xp.where(g > guard, int(stage), int(Stage.NONE)).astype(np.int8))
 
@@ -115,8 +119,8 @@ def passes(rec: LeafRecord):
 
 
 def needs_hull(capsule: LeafRecord, self_test: LeafRecord | None, xp=np):
-    """Where the hull stage runs: the capsules fail a box, on finite geometry, and the self test
-    (if any) passes."""
+    """Where a later box stage (the hull stage, then the swept stage) runs: the box stages so far
+    (``capsule``: their record) fail a box, on finite geometry, and the self test (if any) passes."""
     out = ~passes(capsule) & ~xp.isnan(capsule.clearance_m)
     return out if self_test is None else out & passes(self_test)
 

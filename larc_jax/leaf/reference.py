@@ -6,6 +6,8 @@ A certificate's leaf passes when every test the run asked for passes on it:
 2. with ``enclosure="hull"``, where the capsules fail a box, the convex-hull test of the link
    parts (:func:`~larc_jax.leaf.cascade.cascade_np`) — tried only where the self test passes, as the
    batched schedulers do;
+2'. with ``swept``, where the leaf is still open (and the self test passes), the swept test
+   (:func:`~larc_jax.leaf.swept.swept_stage_np`);
 3. with the self-collision test, every checked capsule pair
    (:func:`~larc_jax.leaf.self_collision.self_clearance_np`);
 
@@ -32,6 +34,7 @@ from ..obstacles import scene_obstacles
 from .placement import place_np
 from ..model.robot import Robot
 from .self_collision import SelfPairs, self_stage_np
+from .swept import SweptTables, swept_links, swept_stage_np, swept_tables
 from ..enclosure.tracking import tracked_capsules
 
 __all__ = ["LeafEnclosures", "leaf_enclosures", "leaf_test_np"]
@@ -47,13 +50,16 @@ class LeafEnclosures:
     """The hull parts of the cascade (grown alike), or None for the capsule test alone."""
     links: Links | None
     """Which link each capsule and part belongs to (with ``hulls``)."""
+    swept: SweptTables | None = None
+    """The swept stage's chain tables (:mod:`larc_jax.leaf.swept`), or None: no swept stage."""
 
 
 def leaf_enclosures(robot: Robot, capsules: CapsuleModel, enclosure: str, delta=None,
-                    hulls: HullModel | None = None) -> LeafEnclosures:
+                    hulls: HullModel | None = None, swept: bool = False) -> LeafEnclosures:
     """The enclosures of a run: ``capsules`` as given to certify (planned), ``enclosure``
     ``"capsules"`` or ``"hull"``, ``delta`` the tracking tolerance per active joint (or None),
-    ``hulls`` the hull parts if given (else built from the robot file's ``hull_parts``)."""
+    ``hulls`` the hull parts if given (else built from the robot file's ``hull_parts``),
+    ``swept`` whether the swept stage runs (``RunSpec.swept``)."""
     if enclosure == "hull":
         hulls = hulls if hulls is not None else hull_model(robot, capsules.hull_parts, capsules.padding_m)
         hulls = hulls.on_links(capsules.link_names)  # links a capsule model excludes are excluded here too
@@ -61,7 +67,9 @@ def leaf_enclosures(robot: Robot, capsules: CapsuleModel, enclosure: str, delta=
         hulls = tracked_capsules(hulls, delta)  # the parts' radii grow as the capsules' do
     else:
         hulls, links = None, None
-    return LeafEnclosures(capsules=tracked_capsules(capsules, delta), hulls=hulls, links=links)
+    capsules = tracked_capsules(capsules, delta)
+    tables = swept_tables(robot, capsules, hulls) if swept else None
+    return LeafEnclosures(capsules=capsules, hulls=hulls, links=links, swept=tables)
 
 
 def leaf_test_np(robot: Robot, enc: LeafEnclosures, traj, obstacles, t0: float, t1: float, margin: float, bounds,
@@ -81,4 +89,8 @@ def leaf_test_np(robot: Robot, enc: LeafEnclosures, traj, obstacles, t0: float, 
         g, guard, cap, box, _ = cascade_np(robot, capsules, enc.hulls, enc.links, traj, obstacles, t0, t1, margin,
                                            bounds, ev)
         record = box_record(g, guard, cap, box, Stage.HULL)
+    if enc.swept is not None and needs_hull(record, self_test):
+        g, guard, cap, box = swept_stage_np(robot, capsules, enc.hulls, enc.swept, swept_links(capsules, enc.links),
+                                            traj, obstacles, t0, t1, margin, bounds)
+        record = box_record(g, guard, cap, box, Stage.SWEPT)
     return compose(record, self_test)

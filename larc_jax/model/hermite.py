@@ -33,6 +33,17 @@ sparse table (range-maximum query, O(1) per query). The only error is floating-p
 in evaluating (*); no safety margin is added here (the certifier adds its own documented
 rounding guard).
 
+Accelerations (the swept test, :mod:`larc_jax.leaf.swept`). Differentiating (*) once more,
+
+    qddot(s) h_k = (6s - 4) v_k + (6s - 2) v_{k+1} + (6 - 12s) d_k                  (**)
+
+is *linear* in ``s`` (the curve is C1, its second derivative jumps at the knots), so
+``max_{s in [s0, s1]} |qddot_j(s)| = max(|qddot_j(s0)|, |qddot_j(s1)|)`` exactly, and
+:func:`accel_max` takes the maximum over an interval with the same range query as the speeds
+(its own sparse table, :attr:`HermiteSpline.accel_table`). Rounding: the coefficients of (**)
+are at most 4, 4 and 6 in magnitude on [0, 1], so its error is ``<= 16 u A_kj``, ``A_kj = (4 |v_kj|
++ 4 |v_k+1,j| + 6 |d_kj|) / h_k`` (:func:`~larc_jax.leaf.interval.trajectory_rounding` adds it).
+
 Form (*) is used for evaluation because it is exact at the knots: at ``s = 0`` it returns
 ``v_k`` and at ``s = 1`` it returns ``v_{k+1}`` bit-for-bit, so both segments adjacent to a
 knot give the same velocity there. The power-form coefficients are used only to locate the
@@ -48,8 +59,8 @@ then mapped with ``jax.vmap``.
 
 All JAX functions are pure ``jnp``, jit- and vmap-able, dtype-polymorphic (float32 in gives
 float32 out, float64 in gives float64 out under ``jax.enable_x64``) and never flip global JAX
-configuration. :func:`evaluate_np` and :func:`speed_max_np` are independent float64 NumPy
-references (power form in ``t - t_k``, plain loops).
+configuration. :func:`evaluate_np`, :func:`speed_max_np` and :func:`accel_max_np` are independent
+float64 NumPy references (:mod:`larc_jax.model.hermite_reference`: power form, plain loops).
 """
 
 from __future__ import annotations
@@ -61,6 +72,7 @@ import numpy as np
 
 from ..errors import LarcInputError
 from ..lazy_jax import jax, jnp, pytree_dataclass
+from .hermite_reference import accel_max_np, evaluate_np, speed_max_np
 
 __all__ = [
     "HermiteSpline",
@@ -71,6 +83,9 @@ __all__ = [
     "evaluate",
     "segment_speed_max",
     "speed_max",
+    "segment_accel_max",
+    "accel_max",
+    "accel_max_np",
     "evaluate_np",
     "speed_max_np",
 ]
@@ -128,21 +143,36 @@ def segment_speed_max(q0, v0, q1, v1, h, s0, s1):
     return jnp.maximum(jnp.maximum(w0, w1), wv)
 
 
+def _segment_accel(v0, v1, d, h, s):
+    """Acceleration (**) at normalised time ``s`` of a segment of duration ``h``."""
+    return ((6 * s - 4) * v0 + (6 * s - 2) * v1 + (6 - 12 * s) * d) / h
+
+
+def segment_accel_max(q0, v0, q1, v1, h, s0, s1):
+    """Exact ``max_{s in [s0, s1]} |qddot_j(s)|`` on one Hermite segment (arguments as
+    :func:`segment_speed_max`): (**) is linear in ``s``, so the larger end value."""
+    d = (q1 - q0) / h
+    s0 = jnp.asarray(s0, dtype=d.dtype)
+    s1 = jnp.asarray(s1, dtype=d.dtype)
+    return jnp.maximum(jnp.abs(_segment_accel(v0, v1, d, h, s0)), jnp.abs(_segment_accel(v0, v1, d, h, s1)))
+
+
 # ------------------------------------------------------------------------------------------
 # Spline pytree
 # ------------------------------------------------------------------------------------------
 
 
-def _build_speed_table(t_knots, q_knots, qd_knots):
-    """Sparse table ``(L, K, n)`` of segment speed maxima (jnp; works under jit/vmap)."""
+def _build_table(t_knots, q_knots, qd_knots, segment_max):
+    """Sparse table ``(L, K, n)`` of the whole-segment maxima of ``segment_max``
+    (:func:`segment_speed_max` or :func:`segment_accel_max`; jnp, works under jit/vmap)."""
     K = t_knots.shape[0] - 1
     L = num_table_levels(K)
     h = t_knots[1:] - t_knots[:-1]  # (K,)
     zero = jnp.zeros_like(h)
     one = jnp.ones_like(h)
-    level = segment_speed_max(
+    level = segment_max(
         q_knots[:-1], qd_knots[:-1], q_knots[1:], qd_knots[1:], h[:, None], zero[:, None], one[:, None]
-    )  # (K, n): exact max of |qdot_j| over the whole segment k
+    )  # (K, n): exact maximum over the whole segment k
     levels = [level]
     for lv in range(1, L):
         half = 1 << (lv - 1)
@@ -173,6 +203,8 @@ class HermiteSpline:
     """(L, K, n) sparse table, rad/s or m/s: ``speed_table[l, k, j]`` is the exact max of
     ``|qdot_j|`` over segments ``k .. min(k + 2**l - 1, K - 1)`` (level 0: segment ``k``
     alone); ``L = max(1, ceil(log2 K) + 1)``."""
+    accel_table: jax.Array
+    """(L, K, n) the same table of the maxima of ``|qddot_j|`` (eq. (**)), rad/s^2 or m/s^2."""
 
     @property
     def num_segments(self) -> int:
@@ -190,6 +222,9 @@ class HermiteSpline:
 
     def table(self, level, i):
         return self.speed_table[level, i]
+
+    def accel_table_at(self, level, i):
+        return self.accel_table[level, i]
 
     @property
     def num_joints(self) -> int:
@@ -218,7 +253,8 @@ class HermiteSpline:
         t = t.astype(dtype)
         q = q.astype(dtype)
         qd = qd.astype(dtype)
-        return cls(t_knots=t, q_knots=q, qd_knots=qd, speed_table=_build_speed_table(t, q, qd))
+        return cls(t_knots=t, q_knots=q, qd_knots=qd, speed_table=_build_table(t, q, qd, segment_speed_max),
+                   accel_table=_build_table(t, q, qd, segment_accel_max))
 
 
 @pytree_dataclass
@@ -254,6 +290,9 @@ class SplineRow:
 
     def table(self, level, i):
         return self.batch.speed_table[self.k, level, i]
+
+    def accel_table_at(self, level, i):
+        return self.batch.accel_table[self.k, level, i]
 
 
 # ------------------------------------------------------------------------------------------
@@ -364,6 +403,18 @@ def speed_max(spline: HermiteSpline, a, b):
     contribute ``max(T[l, ia+1], T[l, ib - 2**l])`` with ``l = floor(log2 c)`` from the sparse
     table (masked out when ``c = 0``). Cost is O(n) plus the two binary searches.
     """
+    return _range_max(spline, a, b, segment_speed_max, spline.table)
+
+
+def accel_max(spline: HermiteSpline, a, b):
+    """Exact ``max_{t in [a, b]} |qddot_j(t)|`` for every joint ``j``: ``(n,)``, with the
+    preconditions and the range query of :func:`speed_max` (eq. (**) of the module docstring is
+    linear on each segment, so each touched segment's maximum is at its clipped ends)."""
+    return _range_max(spline, a, b, segment_accel_max, spline.accel_table_at)
+
+
+def _range_max(spline, a, b, segment_max, table):
+    """The range query of :func:`speed_max` for one segment kernel and its sparse table."""
     tk = spline.knots()
     K = tk.shape[0] - 1
     L = num_table_levels(K)
@@ -388,9 +439,9 @@ def speed_max(spline: HermiteSpline, a, b):
     sa = jnp.clip((a - ta) / ha, zero, one)  # a's position in segment ia
     sb = jnp.clip((b - tb) / hb, zero, one)  # b's position in segment ib
     # First touched segment over [sa, 1] (or [sa, sb] when a and b share a segment).
-    w_first = segment_speed_max(qa0, va0, qa1, va1, ha, sa, jnp.where(same, sb, one))
+    w_first = segment_max(qa0, va0, qa1, va1, ha, sa, jnp.where(same, sb, one))
     # Last touched segment over [0, sb] (or [sa, sb] when shared).
-    w_last = segment_speed_max(qb0, vb0, qb1, vb1, hb, jnp.where(same, sa, zero), sb)
+    w_last = segment_max(qb0, vb0, qb1, vb1, hb, jnp.where(same, sa, zero), sb)
 
     # Fully covered segments ia+1 .. ib-1: O(1) sparse-table range maximum.
     count = jnp.maximum(ib - ia - 1, 0)
@@ -399,74 +450,7 @@ def speed_max(spline: HermiteSpline, a, b):
     pow2 = jnp.left_shift(jnp.ones_like(count), lvl)
     i_lo = jnp.clip(ia + 1, 0, K - 1)
     i_hi = jnp.clip(ib - pow2, 0, K - 1)  # (ib - 1) - 2**l + 1
-    w_mid = jnp.maximum(spline.table(lvl, i_lo), spline.table(lvl, i_hi))
+    w_mid = jnp.maximum(table(lvl, i_lo), table(lvl, i_hi))
     w_mid = jnp.where(count > 0, w_mid, jnp.zeros_like(w_mid))
 
     return jnp.maximum(jnp.maximum(w_first, w_last), w_mid)
-
-
-# ------------------------------------------------------------------------------------------
-# NumPy float64 references (independent: power form in tau = t - t_k, plain loops)
-# ------------------------------------------------------------------------------------------
-
-
-def _power_coeffs_np(t_knots, q_knots, qd_knots, k):
-    """Coefficients of q(t_k + tau) = a0 + a1 tau + a2 tau^2 + a3 tau^3 on segment k."""
-    h = float(t_knots[k + 1] - t_knots[k])
-    y0, y1 = q_knots[k], q_knots[k + 1]
-    m0, m1 = qd_knots[k], qd_knots[k + 1]
-    slope = (y1 - y0) / h
-    a2 = (3.0 * slope - 2.0 * m0 - m1) / h
-    a3 = (m0 + m1 - 2.0 * slope) / (h * h)
-    return y0, m0, a2, a3, h
-
-
-def evaluate_np(t_knots, q_knots, qd_knots, t):
-    """NumPy float64 reference of :func:`evaluate`: ``(q (n,), qd (n,))`` at scalar ``t``."""
-    t_knots = np.asarray(t_knots, dtype=np.float64)
-    q_knots = np.asarray(q_knots, dtype=np.float64)
-    qd_knots = np.asarray(qd_knots, dtype=np.float64)
-    K = t_knots.shape[0] - 1
-    t = float(t)
-    k = 0
-    while k < K - 1 and t >= t_knots[k + 1]:
-        k += 1
-    a0, a1, a2, a3, _ = _power_coeffs_np(t_knots, q_knots, qd_knots, k)
-    tau = t - t_knots[k]
-    q = a0 + tau * (a1 + tau * (a2 + tau * a3))
-    qd = a1 + tau * (2.0 * a2 + tau * 3.0 * a3)
-    return q, qd
-
-
-def speed_max_np(t_knots, q_knots, qd_knots, a, b):
-    """NumPy float64 reference of :func:`speed_max` (paper eq. 5), for ``t_0 <= a <= b <= t_K``.
-
-    Loops over every segment ``[t_k, t_{k+1}]`` that intersects ``[a, b]`` (a zero-width
-    interval at a knot touches both neighbours) and takes, per joint, the largest ``|qdot|`` at
-    the clipped ends and at the vertex of the quadratic ``qdot`` when it lies inside.
-    """
-    t_knots = np.asarray(t_knots, dtype=np.float64)
-    q_knots = np.asarray(q_knots, dtype=np.float64)
-    qd_knots = np.asarray(qd_knots, dtype=np.float64)
-    a = float(a)
-    b = float(b)
-    K = t_knots.shape[0] - 1
-    n = q_knots.shape[1]
-    best = np.zeros(n)
-    for k in range(K):
-        lo, hi = t_knots[k], t_knots[k + 1]
-        if hi < a or lo > b:
-            continue
-        _, a1, a2, a3, h = _power_coeffs_np(t_knots, q_knots, qd_knots, k)
-        tau0 = max(a, lo) - lo
-        tau1 = min(b, hi) - lo
-        for j in range(n):
-            cands = [tau0, tau1]
-            if a3[j] != 0.0:
-                tv = -a2[j] / (3.0 * a3[j])  # root of qddot_j = 2 a2 + 6 a3 tau
-                if tau0 < tv < tau1:
-                    cands.append(tv)
-            for tau in cands:
-                val = abs(a1[j] + tau * (2.0 * a2[j] + tau * 3.0 * a3[j]))
-                best[j] = max(best[j], val)
-    return best

@@ -42,7 +42,14 @@ bounded *a posteriori*, from the numbers of each evaluation, and subtracted from
   ``fl(sqrt(w . w))`` and the division: ``<= 8 u (sum_i |w_i s_i| / |w| + |lb|)``.
 
 So each evaluation returns ``lb - 32 u (sum_i |w_i s_i| / |w| + |lb| + max_j |v_j|)`` (constants
-doubled, then more): never more than (S) for the computed placement. Only box coordinates that
+doubled, then more): never more than (S) for the computed placement.
+
+Several placements (the swept test, :mod:`larc_jax.leaf.swept`). Given poses ``(R_i, t_i)``, the
+polytope is ``conv(U_i (R_i V + t_i))``, whose support along ``w`` is the largest of the
+placements' supports: ``max_i (w . t_i + max_v (R_i^T w) . v)``, so (S) holds unchanged. The
+placement and vertex are chosen with rounded scores that now include ``w . t_i``: the choice may
+miss the true maximum by a further ``<= 12 u |w| max_i |t_i|``, so ``max_i |t_i|_1`` joins
+``max_j |v_j|`` in the subtracted term (one placement: unchanged). Only box coordinates that
 enter with a weight ``w_i`` count, relative to the bound itself; a far or huge box costs
 nothing elsewhere. The search itself may be inexact in any way without harm. Degenerate simplices are skipped by their determinant tests
 and a zero ``w`` is replaced by a fixed axis, so finite input gives a finite bound; NaN input
@@ -156,7 +163,8 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
         is read in place, never copied per pair.
       part: scalar index of the polytope.
       centre: (3,) any point in the link frame (seeds the search; the part's centre is best).
-      R, t: (3, 3), (3,) link pose in the box frame (rotation, translation m).
+      R, t: (3, 3), (3,) link pose in the box frame (rotation, translation m); or (m, 3, 3), (m, 3):
+        m placements, the polytope being the hull of their union (module docstring).
       lo, hi: (3,) box corners, m, ``lo <= hi``.
       iterations: GJK steps (static).
 
@@ -170,20 +178,34 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
     unit_x = jnp.array([1.0, 0.0, 0.0], dtype)
     u = float(jnp.finfo(dtype).eps) / 2
     v_max = jnp.max(jnp.abs(table[part]).sum(axis=1))  # >= max_j |v_j| (1-norm >= 2-norm)
+    union = R.ndim == 3  # static: several placements
+    if union:
+        v_max = v_max + jnp.max(jnp.abs(t).sum(axis=1))  # the translations enter the choice
 
     def bound(w, part):
         """(S) at ``w`` less its rounding bound (module docstring), and the point of D = B - P
         attaining it."""
         w = jnp.where(_dot(w, w) > 0, w, unit_x)  # any axis is sound; this one avoids 0/0
-        m = _dot(R.T, w)  # the axis in the link frame
         V = table[part]  # read by the reduction only (fused); the winner is fetched apart
-        k = jnp.argmax(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
-        s = jnp.where(w > 0, lo, hi) - (_dot(R, table[part, k]) + t)
+        if union:
+            m = jnp.einsum("pij,i->pj", R, w, precision=jax.lax.Precision.HIGHEST)  # the axis per placement
+            scores = V[:, None, 0] * m[:, 0] + V[:, None, 1] * m[:, 1] + V[:, None, 2] * m[:, 2] + _dot(t, w)
+            flat = jnp.argmax(scores.reshape(-1))
+            k, i = flat // R.shape[0], flat % R.shape[0]
+            placed = _dot(R[i], table[part, k]) + t[i]
+        else:
+            m = _dot(R.T, w)  # the axis in the link frame
+            k = jnp.argmax(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
+            placed = _dot(R, table[part, k]) + t
+        s = jnp.where(w > 0, lo, hi) - placed
         norm = jnp.sqrt(_dot(w, w))
         lb = _dot(w, s) / norm
         return lb - 32 * u * (_dot(jnp.abs(w), jnp.abs(s)) / norm + jnp.abs(lb) + v_max), s
 
-    c = _dot(R, centre) + t
+    if union:
+        c = jnp.mean(jnp.einsum("pij,j->pi", R, centre, precision=jax.lax.Precision.HIGHEST) + t, axis=0)
+    else:
+        c = _dot(R, centre) + t
     best, s = bound(jnp.clip(c, lo, hi) - c, part)
     Y = jnp.zeros((4, 3), dtype).at[0].set(s)
     active = jnp.array([True, False, False, False])
@@ -263,18 +285,24 @@ def polytope_box_lower_bound_np(V, centre, R, t, lo, hi, iterations: int = GJK_I
         return math.nan
 
     u = float(np.finfo(np.float64).eps) / 2
-    v_max = float(np.abs(V).sum(axis=1).max())
+    union = R.ndim == 3
+    Rs, ts = (R, t) if union else (R[None], t[None])
+    v_max = float(np.abs(V).sum(axis=1).max()) + (float(np.abs(t).sum(axis=1).max()) if union else 0.0)
 
     def bound(w):
         if not w @ w > 0:
             w = np.array([1.0, 0.0, 0.0])
-        k = int(np.argmax(V @ (R.T @ w)))
-        s = np.where(w > 0, lo, hi) - (R @ V[k] + t)
+        if union:
+            scores = np.stack([V @ (Ri.T @ w) + ti @ w for Ri, ti in zip(Rs, ts)], axis=1)  # (K, m)
+            k, i = np.unravel_index(int(np.argmax(scores)), scores.shape)
+        else:
+            k, i = int(np.argmax(V @ (R.T @ w))), 0
+        s = np.where(w > 0, lo, hi) - (Rs[i] @ V[k] + ts[i])
         norm = math.sqrt(w @ w)
         lb = float(w @ s) / norm
         return lb - 32 * u * (float(np.abs(w) @ np.abs(s)) / norm + abs(lb) + v_max), s
 
-    c = R @ centre + t
+    c = np.mean([Ri @ centre + ti for Ri, ti in zip(Rs, ts)], axis=0) if union else R @ centre + t
     best, s = bound(np.clip(c, lo, hi) - c)
     Y = np.zeros((4, 3))
     Y[0] = s

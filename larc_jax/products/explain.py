@@ -30,7 +30,7 @@ from ..errors import LarcInputError
 from ..leaf.cascade import hull_pair_clearance_np, interval_pairs_np
 from ..leaf.interval import evaluate_interval_np, trajectory_rounding
 from ..leaf.placement import motion_radii
-from ..leaf.record import LeafRecord
+from ..leaf.record import LeafRecord, Stage
 from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
 from ..leaf.self_collision import SelfPairs, curve_ranges, load_separation, segment_segment_distance_np, self_pairs
 from ..model.robot import Robot
@@ -183,7 +183,7 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
     spec = result.spec or RunSpec(method="reference", margin_m=result.margin_m, enclosure="capsules")
     capsules = capsules.with_padding(spec.padding_m)  # as certify placed them (RunSpec.padding_m)
     delta = check_tracking_tolerance(spec.tolerance_arg(), robot)
-    enc = leaf_enclosures(robot, capsules, spec.enclosure, delta)
+    enc = leaf_enclosures(robot, capsules, spec.enclosure, delta, swept=spec.swept)
     bounds = trajectory_rounding(traj, robot, enc.capsules, spec.dtype, enc.hulls)
     pairs, skip = None, None
     if spec.self_collision:
@@ -201,7 +201,7 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
         pair = _deciding_pair(pairs, ev, c, int(other))
         closest, dist = pair.closest, pair.distance_m
     elif scene.n_boxes:
-        if enc.links is not None:  # the hull test may have decided the worst (link, box) pair
+        if enc.links is not None and stage != Stage.SWEPT:  # the hull test may have decided the worst pair
             c, k = int(c_dec), int(k_dec)
             part = _deciding_part(robot, enc, traj, scene, leaf, spec.margin_m, bounds, ev, record)
         closest = segment_box_closest_points(ev.p_world_a[c], ev.p_world_b[c], scene.lo[k], scene.hi[k])
@@ -209,7 +209,7 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
     else:
         c = k = -1
     passed = stage > 0
-    stage_name = "" if not passed else "self" if other >= 0 else ("capsule", "hull")[stage - 1]
+    stage_name = "" if not passed else "self" if other >= 0 else Stage(int(stage)).label
     return Explanation(
         trajectory_id=result.id, certified=result.certified, leaf=leaf, t_mid=float(ev.t_mid) + float(bounds.offset_s),
         h=float(ev.h_cov),

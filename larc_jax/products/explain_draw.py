@@ -398,6 +398,7 @@ def figure(ex: Explanation, robot: Robot, capsules: CapsuleModel, traj: Trajecto
              f"half-width h = {ex.h * 1000:.2f} ms",
              "q(t_m) = [" + " ".join(f"{v:.2f}" for v in ex.q_mid) + "]"]
     decided = {"": "no test passed it", "capsule": "passed by the capsule test", "hull": "passed by the hull test",
+               "swept": "passed by the swept test",
                "self": "passed; nearest: the self-collision pair"}[ex.stage]
     lines += [f"leaf {decided}: g = {_fmt_mm(ex.decided_clearance_m)}, guard {_fmt_mm(ex.guard_m)}"]
     lines += _numbers(ex, capsules)

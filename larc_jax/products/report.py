@@ -51,6 +51,8 @@ def table_lines(result: DatasetResult) -> list[str]:
     n_ok = sum(r.certified for r in result)
     compiling = f" of which {result.compile_time_s:.2f} s compiling" if result.compile_time_s >= 0.005 else ""
     enclosure = "capsules then hulls" if result.enclosure == "hull" else "capsules"
+    if result.spec is not None and result.spec.swept:
+        enclosure += ", swept stage"
     lines.append(f"{n_ok} of {len(result)} certified ({result.method}, {enclosure}, margin {result.margin_m * 1000:g} mm, "
                  + (f"padding {result.padding_m * 1000:g} mm, " if math.isfinite(result.padding_m) else "") +
                  f"{sum(r.evaluations for r in result)} interval evaluations, {result.wall_time_s:.2f} s{compiling})")
@@ -74,6 +76,7 @@ def result_json(result: DatasetResult, scene_path) -> dict:
     return {
         "method": result.method, "enclosure": result.enclosure, "margin_m": result.margin_m,
         "padding_m": None if math.isnan(result.padding_m) else result.padding_m,
+        "swept": None if result.spec is None else result.spec.swept,
         "max_depth": result.max_depth, "scene": str(scene_path), "excluded_links": list(result.excluded_links),
         "tracking_tolerance": dict(result.tracking_tolerance) or None,
         "self_collision": None if result.self_margin_m is None else {
@@ -88,7 +91,7 @@ def result_json(result: DatasetResult, scene_path) -> dict:
             {"id": r.id, "certified": r.certified, "evaluations": r.evaluations,
              "frontier_sizes": list(r.frontier_sizes), "min_clearance_m": num(r.min_clearance_m),
              "guard_m": num(r.guard_m), "time_offset_s": r.time_offset_s,
-             "leaves_by_stage": {stage: sum(leaf.stage == stage for leaf in r.leaves) for stage in ("capsule", "hull")},
+             "leaves_by_stage": {stage: sum(leaf.stage == stage for leaf in r.leaves) for stage in ("capsule", "hull", "swept")},
              "first_inconclusive": (
                  {"t0": r.first_inconclusive.t0, "t1": r.first_inconclusive.t1,
                   "capsule": r.first_inconclusive.capsule, "box": r.first_inconclusive.box,

@@ -442,7 +442,7 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
         hulls = prove_enclosures(rob, capsules, spec.enclosure == "hull", source=str(robot_file))
     except EnclosureNotProven as exc:
         raise Refuted(str(exc)) from None
-    enc = leaf_enclosures(rob, capsules, spec.enclosure, delta, hulls)
+    enc = leaf_enclosures(rob, capsules, spec.enclosure, delta, hulls, spec.swept)
     if enclosures_sha256(enc) != _get(robot_doc, "enclosures_sha256", "robot", str):
         raise Refuted("robot.enclosures_sha256: the enclosures rebuilt from the robot file, the URDF and its meshes "
                       "with the certificate's parameters (padding, tracking tolerance, held joints, enclosure) are "

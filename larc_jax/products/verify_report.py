@@ -122,6 +122,8 @@ class Parameters:
     self_not_checked: tuple[tuple[str, str, str], ...] = ()
     """Every link pair the self test does not check, with why (set once the robot is loaded)."""
     velocities: str = VELOCITY_MODES[0]
+    swept: bool = False
+    """Whether the swept stage (:mod:`larc_jax.leaf.swept`) was part of the test."""
 
     @classmethod
     def of(cls, spec: RunSpec) -> "Parameters":
@@ -129,7 +131,7 @@ class Parameters:
                    enclosure=spec.enclosure, excluded_links=spec.ignore_links, padding_m=spec.padding_m,
                    tracking_tolerance=spec.tracking_tolerance,
                    self_margin_m=spec.self_margin_m if spec.self_collision else None, self_skip=spec.self_skip,
-                   velocities=spec.velocities)
+                   velocities=spec.velocities, swept=spec.swept)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -371,7 +373,8 @@ def _tolerance_text(tol) -> str:
 
 def _parameter_lines(p: Parameters) -> list[str]:
     out = [f"  parameters (from the certificate's run spec): method {p.method}, margin {_m(p.margin_m)}, maximum "
-           f"depth {p.max_depth}, enclosure {p.enclosure}, padding {_m(p.padding_m)}, geometry dtype {p.dtype}, velocities {p.velocities}",
+           f"depth {p.max_depth}, enclosure {p.enclosure}{' + swept stage' if p.swept else ''}, "
+           f"padding {_m(p.padding_m)}, geometry dtype {p.dtype}, velocities {p.velocities}",
            "  tracking tolerance: " + _tolerance_text(p.tracking_tolerance)]
     if p.self_margin_m is None:
         out.append("  self-collision: not certified")

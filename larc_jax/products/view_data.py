@@ -41,6 +41,7 @@ from ..run_spec import RunSpec  # noqa: E402
 from ..enclosure.tracking import check_tracking_tolerance  # noqa: E402
 from .explain import segment_box_closest_points, segment_segment_closest_points  # noqa: E402
 from ..leaf.interval import evaluate_interval_np, trajectory_rounding  # noqa: E402
+from ..leaf.record import Stage  # noqa: E402
 from ..leaf.reference import leaf_enclosures  # noqa: E402
 from ..io import parse_json, read_input_text  # noqa: E402
 from ..model.robot import Robot, forward_kinematics_np  # noqa: E402
@@ -51,10 +52,10 @@ from ..model.trajectory_files import read_trajectory_file  # noqa: E402
 __all__ = ["ViewData", "ViewItem", "deciding", "LeafDetail", "read_view_certificate", "read_view_files",
            "link_meshes", "link_poses", "leaf_colours", "timeline_image", "leaf_detail", "STAGE_COLOURS"]
 
-STAGE_COLOURS = {"capsule": (46, 125, 50), "hull": (0, 131, 143), "self": (123, 31, 162),
+STAGE_COLOURS = {"capsule": (46, 125, 50), "hull": (0, 131, 143), "swept": (2, 119, 189), "self": (123, 31, 162),
                  "inconclusive": (211, 47, 47)}
-"""RGB of a leaf on the timeline: passed by the capsule test, by the hull test, recorded pair a
-self-collision pair (passed), or not passed."""
+"""RGB of a leaf on the timeline: passed by the capsule test, by the hull test, by the swept test,
+recorded pair a self-collision pair (passed), or not passed."""
 
 
 def deciding(leaves: LeafTable, j: int) -> str:
@@ -63,7 +64,7 @@ def deciding(leaves: LeafTable, j: int) -> str:
         return "inconclusive"
     if leaves.other_capsule[j] >= 0:
         return "self"
-    return "hull" if leaves.stage[j] == 2 else "capsule"
+    return Stage(int(leaves.stage[j])).label
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,7 +171,7 @@ def _table_leaves(df, tid: str, capsules: CapsuleModel, scene: Scene, source: st
             out.append(table.get(n, -1))
         return np.array(out, np.int64)
 
-    stage = rows["stage"].astype(object).where(rows["stage"].notna(), "").astype(str).map({"": 0, "capsule": 1, "hull": 2}).fillna(0)
+    stage = rows["stage"].astype(object).where(rows["stage"].notna(), "").astype(str).map({s.label: int(s) for s in Stage}).fillna(0)
     return LeafTable(traj=np.zeros(len(rows), np.int64), depth=rows["depth"].to_numpy(np.int64),
                      index=rows["index"].to_numpy(np.int64), t0=rows["t0"].to_numpy(float),
                      t1=rows["t1"].to_numpy(float), clearance_m=rows["clearance_m"].to_numpy(float),
@@ -321,7 +322,7 @@ def leaf_detail(data: ViewData, item: ViewItem, j: int) -> LeafDetail:
     if not math.isfinite(t_mid):
         t_mid = 0.5 * float(lv.t0[j] + lv.t1[j])
     parts = ()
-    if lv.stage[j] == 2 and c >= 0 and data.hulls is not None:
+    if lv.stage[j] == Stage.HULL and c >= 0 and data.hulls is not None:
         hulls, link = data.hulls, caps.link_index[c]
         T = forward_kinematics_np(data.robot, np.asarray(ev.q_mid, np.float64))
         parts = tuple(np.asarray(hulls.vertices[p][: hulls.n_vertices[p]], float) @ T[link, :3, :3].T + T[link, :3, 3]
