@@ -3,7 +3,8 @@
 * :func:`hermite_exact`: the piecewise-cubic Hermite curve through the waypoints, evaluated in
   :class:`fractions.Fraction` arithmetic at a rational time (every float is a rational), so
   times between two floats of a 2^40 s axis are evaluated exactly too.
-* :func:`speed_max_exact`: the exact maximum of ``|qdot_j|`` over a rational interval.
+* :func:`speed_max_exact`: the exact maximum of ``|qdot_j|`` over a rational interval;
+  :func:`accel_max_exact` the same of ``|qddot_j|``.
 * :func:`segment_box_sq_distance_exact`: the exact squared distance between a segment and an
   axis-aligned box with rational (float) coordinates.
 * :func:`min_clearance`: capsule-box clearance ``dist - r`` at a configuration, with the NumPy
@@ -68,6 +69,22 @@ def speed_max_exact(t, q, qd, a, b) -> list[F]:
                     cands.append(tv)
             for tau in cands:
                 best[j] = max(best[j], abs(a1 + tau * (2 * a2 + tau * 3 * a3)))
+    return best
+
+
+def accel_max_exact(t, q, qd, a, b) -> list[F]:
+    """Exact max over [a, b] (a < b, rational, inside [t_0, t_K]) of |qddot_j|, which is linear on
+    each segment: the segments overlapping [a, b] in more than a point, at their clipped ends."""
+    a, b = F(a), F(b)
+    best = [F(0)] * q.shape[1]
+    for k in range(len(t) - 1):
+        lo, hi = F(float(t[k])), F(float(t[k + 1]))
+        if not (lo < b and hi > a):
+            continue
+        for j in range(q.shape[1]):
+            _, _, a2, a3, _ = _coeffs(t, q, qd, k, j)
+            for tau in (max(a, lo) - lo, min(b, hi) - lo):
+                best[j] = max(best[j], abs(2 * a2 + 6 * a3 * tau))
     return best
 
 

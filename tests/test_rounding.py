@@ -22,7 +22,7 @@ from larc_jax.leaf.interval import (K_DIST_ABS, K_DIST_REL, K_FK, K_POS, K_SPEED
                                trajectory_rounding)
 from larc_jax.model.robot import JointType
 
-from .exact import (hermite_exact, leaf_min_clearance, min_clearance, segment_box_sq_distance_exact,
+from .exact import (accel_max_exact, hermite_exact, leaf_min_clearance, min_clearance, segment_box_sq_distance_exact,
                     speed_max_exact)
 
 MARGIN = 0.01
@@ -159,6 +159,32 @@ def test_position_and_speed_errors_are_within_budget():
                 worst_w = max(worst_w, float((under / (U64 * V)).max()))
     assert worst_q * 8 <= K_POS, worst_q  # measured error well inside the budget
     assert worst_w * 8 <= K_SPEED, worst_w
+
+
+def test_acceleration_maxima_error_is_within_budget():
+    """P2' (larc_jax.leaf.interval): accel_max never falls below the exact rational maximum of
+    |qddot_j| by more than a small fraction of accel_slack = K_SPEED u A_j, over curves whose
+    times span 1 ms to 10^4 s and whose speeds span 0.1 to 1000."""
+    from larc_jax.model.hermite import accel_max
+
+    rng = np.random.default_rng(6)
+    worst = 0.0
+    with jax.enable_x64(True):
+        am = jax.jit(accel_max)
+        for case in range(60):
+            t, q, v = _random_curve(rng, int(rng.integers(1, 6)), 3, 10.0 ** rng.uniform(-1, 3))
+            sp = HermiteSpline.from_waypoints(t, q, v)
+            H = np.diff(t)[:, None]
+            A = ((4 * np.abs(v[:-1]) + 4 * np.abs(v[1:]) + 6 * np.abs(np.diff(q, axis=0)) / H) / H).max(axis=0)
+            for _ in range(3):
+                a, b = np.sort(rng.uniform(t[0], t[-1], 2))
+                if not a < b:
+                    continue
+                got = np.asarray(am(sp, a, b))
+                want = accel_max_exact(t, q, v, a, b)
+                under = np.array([float(w - F(float(g))) for g, w in zip(got, want)])
+                worst = max(worst, float((under / (U64 * A)).max()))
+    assert worst * 8 <= K_SPEED, worst
 
 
 # ----------------------------------------------------------------------------------------------

@@ -121,6 +121,7 @@ class Claim:
     tolerance: dict | None
     self_collision: tuple | None  # (margin_m, skipped pairs)
     trajectories: tuple
+    swept: bool = False  # how the leaves are proven (the swept stage), not part of what is claimed
 
 
 def _no_duplicates(pairs):
@@ -187,8 +188,11 @@ def read_claim(text: str) -> Claim:
         trajs.append(TrajClaim(_path(_field(t, "file", str, "traj")), _field(t, "sha256", (str, type(None)), "traj"),
                                _field(t, "arrays_sha256", str, "traj"), velocities, scenes[k],
                                tuple((_hex(a, "t0"), _hex(b, "t1")) for a, b in zip(t0, t1))))
+    swept = p.get("swept", False)
+    if not isinstance(swept, bool):
+        raise Unreadable("swept")
     return Claim(robot, stated, frozenset(_strs(_field(p, "ignore_links", list, "p"), "excluded")), margin, padding,
-                 enclosure, tol, sc, tuple(trajs))
+                 enclosure, tol, sc, tuple(trajs), swept)
 
 
 def implied(m: Claim, o: Claim) -> bool:
@@ -223,7 +227,7 @@ def claim_holds(c: Claim) -> str | None:
         caps = caps.without_links(robot, more) if more else caps
         caps = caps.with_padding(c.padding_m)  # the claim: every mesh clears margin + padding
         delta = None if c.tolerance is None else np.array([c.tolerance.get(j, 0.0) for j in robot.active_joint_names])
-        enc = leaf_enclosures(robot, caps, c.enclosure, delta)
+        enc = leaf_enclosures(robot, caps, c.enclosure, delta, swept=c.swept)
         pairs = None
         if c.self_collision is not None:
             pairs = self_pairs(robot, caps, c.self_collision[0], sorted(c.self_collision[1]),

@@ -18,7 +18,9 @@ float64 twin (suffix ``_np``) for the reference scheduler and ``larc verify``:
   bound that skips work, so it needs no rounding care;
 - ``polytope_lower_bound(vertices, part, centre, R, t)``: a lower bound on the distance from the
   polytope ``conv(R vertices[part] + t)`` to the item (the hull stage; the twin takes the part's
-  vertex array ``V`` instead of ``vertices, part``).
+  vertex array ``V`` instead of ``vertices, part``). ``R, t`` may also be a stack of placements
+  ((m, 3, 3), (m, 3)): the polytope is then the hull of their union (the swept stage,
+  :mod:`larc_jax.leaf.swept`), whose support is the largest of the placements' supports.
 
 Soundness contract. Every distance kernel but ``point_distance`` returns a LOWER bound on the
 true Euclidean distance, valid for the numbers as computed (its own rounding already
