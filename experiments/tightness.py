@@ -28,7 +28,7 @@ really stay from the boxes, and asks which certificates prove it (issue 12):
    (``results/stageB``), whose evaluations are compared with fixed-fine's ``512`` per trajectory
    (``stageB.csv``).
 4. ``tables`` — ``table.md`` / ``table.csv`` (certified count per true-clearance bin, the
-   issue's table), ``goal.md`` (the issue's goal lines), ``blocking.md`` (what still blocks
+   issue's table, and in ``table.md`` the interval evaluations per bin), ``goal.md`` (the issue's goal lines), ``blocking.md`` (what still blocks
    the cascade at depth 12 on clear trajectories), ``summary.json``; and
    ``certified_vs_clearance.png`` (certified fraction against true clearance).
 
@@ -506,6 +506,12 @@ def stage_tables(plan: Plan) -> None:
     lines = [head, "|" + "---|" * (2 + len(names))]
     for r in rows:
         lines.append(f"| {r['true mesh clearance']} | {r['n']} | " + " | ".join(str(r[n]) for n in names) + " |")
+    evals = cert.pivot(index="traj_id", columns="config", values="evaluations").astype(int)
+    ev = df[["bin"]].join(evals, how="inner")
+    ev_lines = [head, lines[1]]
+    for label in labels:
+        sub = ev[ev["bin"] == label]
+        ev_lines.append(f"| {label} | {len(sub)} | " + " | ".join(str(int(sub[n].sum())) for n in names) + " |")
     n_traj = len(df)
     md = [f"# Certified trajectories by true mesh clearance ({n_traj} planned trajectories)", "",
           f"rho = {MARGIN_M * 1000:g} mm. Truth: python-fcl, official meshes, fingers closed (joint7 = joint8 = 0), "
@@ -514,7 +520,8 @@ def stage_tables(plan: Plan) -> None:
           "Padding on every enclosure beyond its proven containment of the meshes (RunSpec.padding_m): the "
           "enclosure's default (capsules 1 mm, cascade 0) unless the column says otherwise. "
           f"Planning paddings (mm): {', '.join(str(p) for p in plan.paddings_mm)}; scenes: {', '.join(plan.scenes)}.",
-          "", *lines, ""]
+          "", *lines, "", "Interval evaluations by true mesh clearance (the sum over the bin's trajectories):", "",
+          *ev_lines, ""]
     atomic_write_text(plan.out / "table.md", "\n".join(md))
 
     # The issue's goal, measured.
