@@ -41,7 +41,8 @@ __all__ = [
 
 
 class SceneBoxes:
-    """FCL objects of a set of axis-aligned boxes (built once, reused for every state)."""
+    """FCL objects of a scene's obstacles (built once, reused for every state): axis-aligned boxes
+    (``lo``, ``hi``), then any posed shapes (:meth:`add_shapes`)."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, names: Sequence[str] | None = None):
         import fcl
@@ -61,10 +62,26 @@ class SceneBoxes:
     def __len__(self) -> int:
         return len(self.objects)
 
+    def add_shapes(self, shapes) -> "SceneBoxes":
+        """Add the posed shapes of a scene (:class:`larc_jax.model.shapes.Shapes`) as solid FCL
+        primitives with their rotations (``fcl.Box``, ``Sphere``, ``Cylinder``, ``Cone``: FCL's
+        geometry, independent of the certifier's bounds); their names follow the boxes'."""
+        import fcl
+
+        make = {"box": lambda d: fcl.Box(*d), "sphere": lambda d: fcl.Sphere(d[0]),
+                "cylinder": lambda d: fcl.Cylinder(d[0], d[1]), "cone": lambda d: fcl.Cone(d[0], d[1])}
+        for kind, d, p, R in zip(shapes.kinds, shapes.dims, shapes.p_world_shape, shapes.R_world_shape):
+            self.objects.append(fcl.CollisionObject(make[kind](d), fcl.Transform(R, p)))
+        self.names = self.names + tuple(shapes.names)
+        return self
+
     @classmethod
     def from_scene(cls, scene) -> "SceneBoxes":
-        """The boxes of a :class:`larc_jax.model.scene.Scene`."""
-        return cls(scene.lo, scene.hi, scene.box_names or None)
+        """The obstacles of a :class:`larc_jax.model.scene.Scene`: its boxes, then its posed shapes.
+        Meshes and point clouds are refused (the audit would otherwise miss them)."""
+        if scene.point_sets.count:
+            raise ValueError(f"{scene.source or scene.name}: the FCL audit does not read meshes or point clouds")
+        return cls(scene.lo, scene.hi, scene.box_names or None).add_shapes(scene.shapes)
 
     @classmethod
     def from_file(cls, path: str | Path, frame: str = "base_link") -> "SceneBoxes":

@@ -28,7 +28,7 @@ __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
     "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport", "view",
     "RunSpec", "fit_robot_file", "parse_hold", "parse_joints", "parse_package_dirs",
-    "ObstacleSet", "AlignedBoxes", "scene_obstacles",
+    "ObstacleSet", "AlignedBoxes", "ConvexShapes", "Shapes", "scene_obstacles",
 ]
 
 _loaded = False
@@ -52,7 +52,8 @@ def _load() -> None:
         verify_containment,
     )
     from .errors import LarcInputError
-    from .obstacles import AlignedBoxes, ObstacleSet, scene_obstacles
+    from .obstacles import AlignedBoxes, ConvexShapes, ObstacleSet, scene_obstacles
+    from .model.shapes import Shapes
     from .obstacles.geometry import segment_box_distance, segment_box_distances
     from .model.hermite import HermiteSpline, speed_max
     from .leaf.interval import IntervalEval, evaluate_interval, interval_clearance

@@ -210,4 +210,4 @@ def test_audit_scene_reader_is_the_librarys(tmp_path):
     boxes, scene = SceneBoxes.from_file(pick), read_scene(pick)
     np.testing.assert_array_equal(boxes.lo, scene.lo)
     np.testing.assert_array_equal(boxes.hi, scene.hi)
-    assert boxes.names == scene.box_names
+    assert boxes.names == scene.obstacle_names and len(boxes) == scene.n_obstacles == 2  # the posed post too

@@ -71,40 +71,36 @@ def _corners(center, rot, size):
     return np.array([center + rot @ (half * s) for s in itertools.product([-1, 1], repeat=3)])
 
 
-def test_rotated_box_warning_prints_corners_rounded_outwards(tmp_path, caplog):
-    """A corner on z = 0 comes out of the padded AABB a hair below zero: the warning prints it
-    as 0.0000, never '-0.0000'."""
+def test_rotated_box_is_kept_as_a_posed_box(tmp_path, caplog):
+    """A rotated box is no longer replaced by its enclosing AABB: it is a posed shape with the
+    file's rotation (quaternion normalised), and nothing is warned."""
     text = NEW_LAYOUT.replace("0.5 0 -0.05\n0 0 0 1\n1", "0.5 0 0.01\n0 0 0.7071068 0.7071068\n1")
     with caplog.at_level(logging.WARNING):
         scene = read_moveit_scene(_write(tmp_path, "rot.scene", text))
-    (rec,) = [r for r in caplog.records if "rotated" in r.getMessage()]
-    msg = rec.getMessage()
-    assert scene.lo[0, 2] < 0.0 and "-0.0000" not in msg, msg
-    assert "[0.2000, -0.2000, 0.0000] .. [0.8000, 0.2000, 0.0200]" in msg, msg
+    assert not caplog.records and scene.n_boxes == 0 and scene.shapes.kinds == ("box",)
+    assert scene.obstacle_names == ("table_top",)
+    q = np.array([0, 0, 0.7071068, 0.7071068])
+    np.testing.assert_allclose(scene.shapes.R_world_shape[0], Rotation.from_quat(q / np.linalg.norm(q)).as_matrix(),
+                               atol=1e-15)
+    np.testing.assert_array_equal(scene.shapes.p_world_shape[0], [0.5, 0, 0.01])
+    np.testing.assert_array_equal(scene.shapes.dims[0], [0.4, 0.6, 0.02])
 
 
-def test_example_scene_rotated_box_enclosed_and_warned(caplog):
-    with caplog.at_level(logging.WARNING, logger="larc_jax.model.scene"):
-        scene = read_scene(EXAMPLES / "pick.scene")
-    assert scene.box_names == ("crate", "post")
+def test_example_scene_rotated_post_is_posed():
+    scene = read_scene(EXAMPLES / "pick.scene")
+    assert scene.box_names == ("crate",) and scene.shapes.names == ("post",)
+    assert scene.obstacle_names == ("crate", "post")
     np.testing.assert_allclose(scene.lo[0], [-0.8, -0.8, 0.0], atol=1e-15)
     np.testing.assert_allclose(scene.hi[0], [-0.6, -0.6, 0.2], atol=1e-15)
-    (rec,) = caplog.records
-    assert "pick.scene" in rec.getMessage() and "'post'" in rec.getMessage()
-    assert "rotated" in rec.getMessage()
     rot = Rotation.from_quat([0, 0, 0.258819, 0.965926]).as_matrix()   # (x, y, z, w)
-    corners = _corners(np.array([0.0, -0.6, 0.25]), rot, [0.1, 0.1, 0.5])
-    assert (corners >= scene.lo[1]).all() and (corners <= scene.hi[1]).all()
-    # and it is the tightest AABB, up to the outward rounding pad
-    np.testing.assert_allclose(scene.lo[1], corners.min(0), atol=1e-12)
-    np.testing.assert_allclose(scene.hi[1], corners.max(0), atol=1e-12)
+    np.testing.assert_allclose(scene.shapes.R_world_shape[0], rot, atol=1e-6)
+    np.testing.assert_array_equal(scene.shapes.p_world_shape[0], [0.0, -0.6, 0.25])
 
 
-def test_scene_nearly_identity_box_is_still_enclosed(tmp_path, caplog):
-    # A rotation of 1e-10 rad is below the warning threshold, but the box must not shrink:
-    # every rotated corner stays inside the AABB that the reader returns.
+def test_scene_nearly_identity_box_is_posed_not_rounded_away(tmp_path, caplog):
+    # A rotation of 1e-10 rad is not the identity: the box keeps it (a posed box), never the
+    # unrotated box.
     angle = 1e-10
-    rot = Rotation.from_euler("z", angle).as_matrix()
     q = Rotation.from_euler("z", angle).as_quat()
     size, center = [2.0, 1.0, 0.5], np.array([0.3, -0.2, 0.1])
     fmt = lambda v: " ".join(repr(float(x)) for x in v)  # noqa: E731
@@ -112,26 +108,21 @@ def test_scene_nearly_identity_box_is_still_enclosed(tmp_path, caplog):
             "0 0 0 0\n0\n.\n")
     with caplog.at_level(logging.WARNING):
         scene = read_scene(_write(tmp_path, "near.scene", text))
-    assert not caplog.records
-    corners = _corners(center, rot, size)
-    assert (corners >= scene.lo[0]).all() and (corners <= scene.hi[0]).all()
+    assert not caplog.records and scene.n_boxes == 0 and scene.shapes.count == 1
+    assert scene.shapes.R_world_shape[0][1, 0] > 0  # the 1e-10 rad rotation is kept
 
 
-def test_scene_object_pose_composed_with_shape_pose(tmp_path, caplog):
+def test_scene_object_pose_composed_with_shape_pose(tmp_path):
     r_obj = Rotation.from_euler("xyz", [0.3, -0.7, 1.1])
     r_shape = Rotation.from_euler("xyz", [-0.4, 0.2, 0.9])
     p_obj, p_shape, size = np.array([0.3, -0.2, 0.4]), np.array([0.05, 0.1, -0.02]), [0.12, 0.3, 0.07]
     fmt = lambda v: " ".join(repr(float(x)) for x in v)  # noqa: E731
     text = (f"s\n* tilted\n{fmt(p_obj)}\n{fmt(r_obj.as_quat())}\n1\nbox\n{fmt(size)}\n"
             f"{fmt(p_shape)}\n{fmt(r_shape.as_quat())}\n0 0 0 0\n0\n.\n")
-    with caplog.at_level(logging.WARNING):
-        scene = read_scene(_write(tmp_path, "tilted.scene", text))
-    assert "tilted" in caplog.text
-    rot = (r_obj * r_shape).as_matrix()
-    corners = _corners(p_obj + r_obj.as_matrix() @ p_shape, rot, size)
-    assert (corners >= scene.lo[0]).all() and (corners <= scene.hi[0]).all()
-    np.testing.assert_allclose(scene.lo[0], corners.min(0), atol=1e-12)
-    np.testing.assert_allclose(scene.hi[0], corners.max(0), atol=1e-12)
+    scene = read_scene(_write(tmp_path, "tilted.scene", text))
+    np.testing.assert_allclose(scene.shapes.R_world_shape[0], (r_obj * r_shape).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(scene.shapes.p_world_shape[0], p_obj + r_obj.as_matrix() @ p_shape, atol=1e-12)
+    np.testing.assert_array_equal(scene.shapes.dims[0], size)
 
 
 def test_scene_multi_shape_object_and_empty_scene(tmp_path):
@@ -144,15 +135,28 @@ def test_scene_multi_shape_object_and_empty_scene(tmp_path):
     assert empty.n_boxes == 0
 
 
-@pytest.mark.parametrize("shape,dims", [("sphere", "0.1"), ("cylinder", "0.1 0.4"), ("cone", "0.1 0.2"),
-                                        ("mesh", "3 1"), ("plane", "0 0 1 0")])
-def test_scene_non_box_refused(tmp_path, shape, dims):
+@pytest.mark.parametrize("shape,dims", [("mesh", "3 1"), ("plane", "0 0 1 0"), ("octree", "1")])
+def test_scene_unsupported_shape_refused(tmp_path, shape, dims):
     text = f"s\n* ball\n0 0 0\n0 0 0 1\n1\n{shape}\n{dims}\n0 0 0\n0 0 0 1\n0 0 0 0\n0\n.\n"
     path = _write(tmp_path, "ball.scene", text)
     with pytest.raises(LarcInputError) as exc:
         read_scene(path)
     msg = str(exc.value)
     assert msg.startswith(f"{path}:6: ") and "'ball'" in msg and shape in msg and "\n" not in msg
+
+
+@pytest.mark.parametrize("shape,dims,want", [("sphere", "0.1", [0.1, 0, 0]), ("cylinder", "0.1 0.4", [0.1, 0.4, 0]),
+                                             ("cone", "0.1 0.2", [0.1, 0.2, 0])])
+def test_scene_round_shapes_read_with_pose(tmp_path, shape, dims, want):
+    q = Rotation.from_euler("xyz", [0.2, 0.4, -0.3]).as_quat()
+    text = (f"s\n* thing\n0.1 0.2 0.3\n{' '.join(map(repr, q.tolist()))}\n1\n{shape}\n{dims}\n0 0 0.05\n0 0 0 1\n"
+            "0 0 0 0\n0\n.\n")
+    scene = read_scene(_write(tmp_path, "round.scene", text))
+    R = Rotation.from_quat(q).as_matrix()
+    assert scene.shapes.kinds == (shape,) and scene.n_boxes == 0
+    np.testing.assert_array_equal(scene.shapes.dims[0], want)
+    np.testing.assert_allclose(scene.shapes.p_world_shape[0], [0.1, 0.2, 0.3] + R @ [0, 0, 0.05], atol=1e-15)
+    np.testing.assert_allclose(scene.shapes.R_world_shape[0], R, atol=1e-15)
 
 
 @pytest.mark.parametrize("text,line,needle", [
@@ -391,12 +395,15 @@ def test_cli_formats_and_exit_codes(tmp_path, capsys):
     assert "positions_only.csv" in err and "--velocities finite-difference" in err
     assert main(["-q", "certify", ex["positions_only.csv"], "--scene", ex["pick.scene"],
                  "--velocities", "finite-difference"]) == 0
-    # a box on the path: uncertified; a sphere: bad input naming file and line
+    # a box on the path: uncertified; the same pillar as a cylinder too; a plane: bad input
+    # naming file and line
     blocked = "s\n* pillar\n0.3 0 0.25\n0 0 0 1\n1\nbox\n0.1 0.1 0.5\n0 0 0\n0 0 0 1\n0 0 0 0\n0\n.\n"
     assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "p.scene", blocked))]) == 1
+    cylinder = blocked.replace("box\n0.1 0.1 0.5", "cylinder\n0.05 0.5")
+    assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "c.scene", cylinder))]) == 1
     capsys.readouterr()
-    sphere = blocked.replace("box\n0.1 0.1 0.5", "sphere\n0.1")
-    assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "b.scene", sphere))]) == 2
+    plane = blocked.replace("box\n0.1 0.1 0.5", "plane\n0 0 1 0")
+    assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "b.scene", plane))]) == 2
     assert "b.scene:6:" in capsys.readouterr().err
 
 

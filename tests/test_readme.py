@@ -150,3 +150,10 @@ def test_benchmark_table_is_the_generated_one():
     begin = "<!-- bench table: results/bench/bench_cpu.md, written by experiments.bench -->"
     i, j = README.index(begin) + len(begin), README.index("<!-- end of bench table -->")
     assert README[i:j].strip() == (ROOT / "results" / "bench" / "bench_cpu.md").read_text().strip()
+
+
+def test_obstacles_table_is_the_generated_one():
+    """The README's obstacle-kind cost table is results/bench/obstacles_cpu.md (experiments.bench_obstacles)."""
+    begin = "<!-- obstacles table: results/bench/obstacles_cpu.md, written by experiments.bench_obstacles -->"
+    i, j = README.index(begin) + len(begin), README.index("<!-- end of obstacles table -->")
+    assert README[i:j].strip() == (ROOT / "results" / "bench" / "obstacles_cpu.md").read_text().strip()

@@ -41,7 +41,9 @@ def _refused(call, path, key):
 
 @pytest.mark.parametrize("text,key", [
     (TYPO, "obstacle"),
-    ("frame: base_link\nobstacles:\n  - {name: post, min: [0, 0, 0], max: [1, 1, 1]}\n", "obstacles"),
+    ("frame: base_link\nobstacles:\n  - {name: post, type: box, size: [1, 1, 1], min: [0, 0, 0]}\n", "min"),
+    ("frame: base_link\nobstacles:\n  - {name: p, type: sphere, radius: 1, pose: {position: [0, 0, 0], "
+     "rotation: [0, 0, 0, 1]}}\n", "rotation"),
     ("frame: base_link\nbox:\n  - {name: post, min: [0, 0, 0], max: [1, 1, 1]}\n", "box"),
     ("frame: base_link\nboxes:\n  - {name: post, min: [0, 0, 0], max: [1, 1, 1], rotation: [0, 0, 1]}\n",
      "rotation"),

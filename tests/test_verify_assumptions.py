@@ -161,7 +161,7 @@ def test_an_empty_scene_is_printed_as_such(made, tmp_path, capsys):
     assert main(["verify", str(path)]) == EXIT_OK
     out = capsys.readouterr().out
     assert f"scene 0: {made['empty']} (named by the certificate) sha256 {file_sha256(made['empty'])}" in out
-    assert "0 boxes: no obstacle" in out
+    assert "0 obstacles: the claim says nothing about obstacles" in out
     assert main(["verify", str(path), "--scene", CELL]) == EXIT_REFUTED  # the third party's scene
     assert "scene file" in capsys.readouterr().err
 

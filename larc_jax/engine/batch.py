@@ -66,6 +66,13 @@ because those kernels take seconds to compile and their calls are fewer; a small
 to 64 costs a few ms."""
 
 
+PAIR_BYTES = 512
+"""Device memory per capsule-obstacle pair per interval that the all-pairs kernel may hold (XLA
+keeps each pair's candidate points; measured ~380 bytes on the CPU), rounded up."""
+CALL_BYTES = 2**30
+"""Device memory one interval call may take for its pairs (:attr:`Batch.max_chunk`)."""
+
+
 def size_class(n: int, minimum: int) -> int:
     """Next power of two >= max(n, minimum): array sizes that vary between calls (waypoints,
     trajectories, scenes) are rounded up to these so a process compiles a few shapes, not one
@@ -267,6 +274,15 @@ class Batch:
         sharding = NamedSharding(Mesh(np.array(self.devices), ("interval",)), PartitionSpec("interval"))
         return tuple(jax.device_put(x, sharding) for x in arrays)
 
+    @property
+    def max_chunk(self) -> int:
+        """Intervals per kernel call at most: the all-pairs interval kernel holds about
+        :data:`PAIR_BYTES` per capsule-obstacle pair, so a call may not exceed :data:`CALL_BYTES`
+        (a scene of thousands of mesh or cloud pieces gets small chunks; box scenes are never
+        limited below the largest bucket)."""
+        pairs = max(1, self.capsules.n_capsules * self.obstacles.n_items)
+        return max(4, 1 << max(0, (CALL_BYTES // (PAIR_BYTES * pairs)).bit_length() - 1))
+
     def endpoints(self, traj: np.ndarray, depth: np.ndarray, index: np.ndarray):
         """Interval ends from (trajectory, depth, index): :func:`dyadic_ends`."""
         return dyadic_ends(self.t_start[traj], self.t_end[traj], depth, index)
@@ -297,6 +313,7 @@ class Batch:
         concatenated over the items; ``on_chunk(n)`` after each chunk of ``n`` items."""
         n = len(items[0])
         parts = []
+        buckets = tuple(s for s in buckets if s <= self.max_chunk) or buckets[:1]  # memory: PAIR_BYTES
         for start in range(0, n, buckets[-1]):
             stop = min(n, start + buckets[-1])
             size = next(s for s in buckets if s >= stop - start)

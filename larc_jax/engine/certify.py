@@ -80,7 +80,8 @@ assert tuple(m.value for m in Method) == METHODS
 
 
 class _Names:
-    """Global box-name codes: scene ``s``'s box ``k`` is code ``offset[s] + k``."""
+    """Global obstacle-name codes: scene ``s``'s obstacle ``k`` (its boxes, then its shapes) is
+    code ``offset[s] + k``."""
 
     def __init__(self, scenes: Sequence[Scene]):
         unique = list(dict.fromkeys(id(s) for s in scenes))
@@ -89,11 +90,11 @@ class _Names:
         for u in unique:
             s = first[u]
             offsets[u] = start
-            names += [s.box_names[k] if k < len(s.box_names) else "" for k in range(s.n_boxes)]
-            start += s.n_boxes
+            names += list(s.obstacle_names)
+            start += s.n_obstacles
         self.box_names = tuple(names)
         self.offset = np.array([offsets[id(s)] for s in scenes], np.int64)
-        self.has_boxes = np.array([s.n_boxes > 0 for s in scenes], bool)
+        self.has_boxes = np.array([s.n_obstacles > 0 for s in scenes], bool)
 
     def part(self, sl: slice) -> "_Names":
         """The codes of the trajectories ``sl`` (same global box names)."""

@@ -1,15 +1,22 @@
-"""Static obstacle scenes: axis-aligned boxes in the robot base frame.
+"""Static obstacle scenes: axis-aligned boxes and posed shapes in the robot base frame.
 
 Scene YAML::
 
     frame: base_link            # must be the robot's root link
     units: m                    # optional; only metres are accepted
     name: cell                  # optional
-    boxes:
+    boxes:                      # axis-aligned boxes
       - {name: wall_left, min: [x, y, z], max: [x, y, z]}
+    obstacles:                  # posed shapes (larc_jax.model.shapes); pose and orientation optional
+      - {name: board, type: box, size: [sx, sy, sz],
+         pose: {position: [x, y, z], orientation: [qx, qy, qz, qw]}}
+      - {name: ball, type: sphere, radius: r, pose: {position: [x, y, z]}}
+      - {name: post, type: cylinder, radius: r, length: l, pose: ...}   # axis along the pose's z
+      - {name: cone, type: cone, radius: r, length: l, pose: ...}
 
-Any other field, in the scene or in a box, is an error naming it (a typo such as ``obstacle:``
-or ``box:`` must not read as a scene with fewer boxes).
+A scene needs ``boxes`` or ``obstacles`` (or both; ``[]`` for none). Any other field, in the
+scene or in an entry, is an error naming it (a typo such as ``obstacle:`` or ``box:`` must not
+read as a scene with fewer obstacles).
 
 MoveIt ``.scene`` text (``PlanningScene::saveGeometryToStream``, MoveIt 1 and 2), read when the
 file name ends in ``.scene``::
@@ -31,10 +38,10 @@ As in MoveIt, the newer layout is recognised by the line after the first ``*`` l
 several numbers (a position) rather than one (the shape count). Coordinates are metres in the
 MoveIt planning frame, which is taken to be the robot base frame (PIPER: ``base_link``): a scene
 saved in another planning frame must be re-expressed first. A box whose orientation (object
-pose composed with shape pose) is exactly the identity becomes its exact AABB; any other box is
-replaced by its enclosing AABB, rounded outwards (conservative: a certificate against the
-larger box holds for the real one), with a warning naming the file and object when the rotation exceeds 1e-9. Spheres,
-cylinders, cones, meshes and planes are refused.
+pose composed with shape pose) is exactly the identity becomes an axis-aligned box; any other
+box, and every sphere, cylinder and cone (``sphere`` r; ``cylinder`` / ``cone`` r l), becomes a
+posed shape with its rotation kept (:class:`~larc_jax.model.shapes.Shapes`). Meshes, planes and
+octrees are refused.
 """
 
 from __future__ import annotations
@@ -51,29 +58,17 @@ import yaml
 
 from ..errors import LarcInputError
 from ..io import check_keys, deferred_log, parse_vector, parse_yaml, read_input_text, real_array, short_repr
+from .point_sets import PointSets
+from .shapes import QUATERNION_NORM_TOLERANCE, Shapes, rotation_from_quaternion, shapes_from_entries
 
 __all__ = ["Scene", "read_scene", "read_moveit_scene", "scene_from_dict", "pad_scenes"]
 
 log = logging.getLogger(__name__)
 
-IDENTITY_TOLERANCE = 1e-9
-"""A box orientation within this (max-abs rotation-matrix entry) of the identity is not warned
-about; its box is still the (padded) enclosing AABB, never the unrotated one."""
-
-QUATERNION_NORM_TOLERANCE = 1e-3
-"""A ``.scene`` quaternion is normalised; one whose norm is further than this from 1 is refused
-(MoveIt writes 6 significant digits, so a genuine rotation is within ~1e-6)."""
-
-
-def _corner_text(v: float) -> str:
-    """A box coordinate in a message, to 0.1 mm: a value that rounds to zero prints as
-    '0.0000', never '-0.0000' (the box's padding puts a corner on 0 a hair below it)."""
-    return f"{round(float(v), 4) + 0.0:.4f}"
-
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """Obstacle boxes of one scene.
+    """Obstacles of one scene: axis-aligned boxes, and posed shapes (``shapes``).
 
     The constructor accepts array-likes (``[[x, y, z], ...]``; ``[]`` for no boxes) and stores
     read-only float64 copies; a wrong type or shape (a single box given as ``[x, y, z]``, say),
@@ -91,6 +86,10 @@ class Scene:
     frame: str = ""
     """The frame the boxes are in: the robot's root link; "" (default) means exactly that."""
     source: str = ""
+    shapes: Shapes = dataclasses.field(default_factory=Shapes)
+    """Posed shapes (oriented boxes, spheres, cylinders, cones); none by default."""
+    point_sets: PointSets = dataclasses.field(default_factory=PointSets)
+    """Meshes and point clouds, as convex pieces; none by default."""
 
     def __post_init__(self):
         for field in ("name", "frame", "source"):
@@ -113,12 +112,33 @@ class Scene:
             raise LarcInputError(f"{src}: Scene.box_names must be a list of names, got {short_repr(names)}")
         if names and len(names) != len(lo):
             raise LarcInputError(f"{src}: Scene.box_names has {len(names)} names for {len(lo)} boxes")
+        if not isinstance(self.shapes, Shapes):
+            raise LarcInputError(f"{src}: Scene.shapes must be a Shapes record, got {short_repr(self.shapes)}")
+        if not isinstance(self.point_sets, PointSets):
+            raise LarcInputError(f"{src}: Scene.point_sets must be a PointSets record, got {short_repr(self.point_sets)}")
         for field, value in (("lo", lo), ("hi", hi), ("box_names", tuple(names) or tuple(f"box{k}" for k in range(len(lo))))):
             object.__setattr__(self, field, value)
 
     @property
     def n_boxes(self) -> int:
+        """Axis-aligned boxes."""
         return len(self.lo)
+
+    @property
+    def n_obstacles(self) -> int:
+        """Obstacle items: the boxes, then the shapes, then the pieces of the meshes and point
+        clouds (a result's obstacle index counts these)."""
+        return len(self.lo) + self.shapes.count + self.point_sets.count
+
+    @property
+    def obstacle_names(self) -> tuple[str, ...]:
+        """Names of the boxes, then of the shapes, then of the pieces."""
+        return tuple(self.box_names) + self.shapes.names + self.point_sets.piece_names
+
+    @property
+    def posed(self) -> bool:
+        """Whether the scene holds anything but axis-aligned boxes."""
+        return bool(self.shapes.count or self.point_sets.count)
 
     @staticmethod
     def empty(name: str = "empty") -> "Scene":
@@ -132,7 +152,7 @@ def _boxes_array(value, where: str) -> np.ndarray:
     return real_array(value, where, 2, 3)
 
 
-_SCENE_KEYS = ("frame", "units", "name", "boxes")
+_SCENE_KEYS = ("frame", "units", "name", "boxes", "obstacles")
 _BOX_KEYS = ("name", "min", "max")
 
 
@@ -152,11 +172,13 @@ def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str 
     if not isinstance(units, str) or units not in ("m", "meter", "meters", "metre", "metres"):
         raise LarcInputError(
             f"{source}: units {short_repr(units)} are not supported (boxes are in metres: use m)")
-    if "boxes" not in doc:  # a typo ('box:') must not read as an empty scene that certifies all
+    if "boxes" not in doc and "obstacles" not in doc:  # a typo ('box:') must not read as an empty scene
         raise LarcInputError(
-            f"{source}: missing field 'boxes' (found fields {short_repr(sorted(map(str, doc)))}); "
+            f"{source}: missing field 'boxes' or 'obstacles' (found fields {short_repr(sorted(map(str, doc)))}); "
             f"write 'boxes: []' for a scene without obstacles")
-    boxes = doc["boxes"]
+    base = Path(source).parent if source and not source.startswith("<") else Path(".")
+    shapes, point_sets = shapes_from_entries(doc.get("obstacles"), source, base)
+    boxes = doc.get("boxes")
     if boxes is None:
         boxes = []
     if not isinstance(boxes, list):
@@ -185,7 +207,8 @@ def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str 
         names.append(str(box_name))
     return Scene(
         lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
-        name=name or str(doc.get("name", "")), frame=scene_frame, source=source,
+        name=name or str(doc.get("name", "")), frame=scene_frame, source=source, shapes=shapes,
+        point_sets=point_sets,
     )
 
 
@@ -259,27 +282,19 @@ class _Tokens:
         norm = float(np.linalg.norm(q))
         if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
             raise self.error(line, f"{what} orientation quaternion {q.tolist()} has norm {norm:.6g}, not 1")
-        return p, _rotation(q / norm)
+        return p, rotation_from_quaternion(q / norm)
 
 
-def _rotation(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-_OTHER_SHAPES = ("sphere", "cylinder", "cone", "mesh", "plane", "octree")
+_REFUSED_SHAPES = ("mesh", "plane", "octree")
+_SHAPE_NUMBERS = {"box": 3, "sphere": 1, "cylinder": 2, "cone": 2}
+"""Dimensions MoveIt writes per shape: box sx sy sz; sphere r; cylinder and cone r l."""
 
 
 def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
     """Read a MoveIt ``.scene`` text file (old and new layouts; see the module docstring).
 
-    Errors are ``file:line: message``. Only boxes are accepted; rotated boxes become their
-    enclosing AABB (logged as a warning). The scene's frame is ``frame`` (default
+    Errors are ``file:line: message``. Boxes, spheres, cylinders and cones are accepted, their
+    rotations kept (an exactly axis-aligned box is an axis-aligned box). The scene's frame is ``frame`` (default
     ``base_link``): the file itself names none.
     """
     path = Path(path)
@@ -297,6 +312,7 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
             new_layout = len(following.split()) > 1
             break
     lo, hi, names = [], [], []
+    shape_rows: list = []  # (kind, name, dims, p_world_shape, R_world_shape)
     seen: set[str] = set()
     while True:
         marker, line, rest = toks.next("'* object name' or the end line '.'")
@@ -318,37 +334,29 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
         n_shapes, _ = toks.count(f"object '{obj}' shape count")
         for k in range(n_shapes):
             shape, sline, _ = toks.next(f"object '{obj}' shape {k} type")
-            if shape != "box":
-                kind = shape if shape in _OTHER_SHAPES else f"unknown shape type '{shape}'"
+            if shape not in _SHAPE_NUMBERS:
+                kind = shape if shape in _REFUSED_SHAPES else f"unknown shape type '{shape}'"
                 raise toks.error(
-                    sline, f"object '{obj}' shape {k} is a {kind}: only boxes are supported "
-                    f"(replace it by a box that encloses it)")
-            size = np.empty(3)
-            for i in range(3):
-                size[i], dline = toks.number(f"object '{obj}' box size")
-            if (size < 0).any():
-                raise toks.error(dline, f"object '{obj}' box size {size.tolist()} is negative")
+                    sline, f"object '{obj}' shape {k} is a {kind}: only boxes, spheres, cylinders and "
+                    f"cones are supported (replace it by one that encloses it)")
+            numbers = np.empty(_SHAPE_NUMBERS[shape])
+            for i in range(len(numbers)):
+                numbers[i], dline = toks.number(f"object '{obj}' {shape} size")
+            if (numbers < 0).any():
+                raise toks.error(dline, f"object '{obj}' {shape} size {numbers.tolist()} is negative")
             p_shape, r_shape = toks.pose(f"object '{obj}' shape {k} pose")
             for _ in range(4):
                 toks.number(f"object '{obj}' shape {k} colour")
             center = p_obj + r_obj @ p_shape
             rot = r_obj @ r_shape
-            half = size / 2.0
-            box_name = obj if n_shapes == 1 else f"{obj}[{k}]"
-            # Always the enclosing AABB: exact (ext == half, no pad) for the identity, and padded
-            # outwards by more than the rounding error of |R| @ half otherwise, so a rotation that
-            # is only *nearly* the identity never shrinks the box.
-            exact = bool((rot == np.eye(3)).all())
-            ext = half if exact else np.abs(rot) @ half
-            pad = 0.0 if exact else 8 * np.finfo(np.float64).eps * (np.abs(center) + ext)
-            b_lo, b_hi = center - ext - pad, center + ext + pad
-            if np.abs(rot - np.eye(3)).max() > IDENTITY_TOLERANCE:  # a real rotation: say so
-                log.warning("%s: object '%s' (line %d) is a rotated box: replaced by its enclosing "
-                            "axis-aligned box [%s] .. [%s] (conservative)", source, box_name, sline,
-                            ", ".join(map(_corner_text, b_lo)), ", ".join(map(_corner_text, b_hi)))
-            lo.append(b_lo)
-            hi.append(b_hi)
-            names.append(box_name)
+            shape_name = obj if n_shapes == 1 else f"{obj}[{k}]"
+            if shape == "box" and bool((rot == np.eye(3)).all()):  # exactly axis-aligned
+                lo.append(center - numbers / 2.0)
+                hi.append(center + numbers / 2.0)
+                names.append(shape_name)
+            else:  # the rotation kept (larc_jax.model.shapes)
+                dims = numbers if shape == "box" else np.concatenate([numbers, np.zeros(3 - len(numbers))])
+                shape_rows.append((shape, shape_name, dims, center, rot))
         if new_layout:
             n_sub, _ = toks.count(f"object '{obj}' subframe count")
             for k in range(n_sub):
@@ -357,9 +365,13 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
     if toks.pos < len(toks.items):
         tok, line, _ = toks.items[toks.pos]
         raise toks.error(line, f"'{tok}' after the end line '.' (one scene per file)")
+    shapes = Shapes(kinds=tuple(r[0] for r in shape_rows), names=tuple(r[1] for r in shape_rows),
+                    dims=np.array([r[2] for r in shape_rows]).reshape(-1, 3),
+                    p_world_shape=np.array([r[3] for r in shape_rows]).reshape(-1, 3),
+                    R_world_shape=np.array([r[4] for r in shape_rows]).reshape(-1, 3, 3))
     return Scene(
         lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
-        name=path.stem, frame=frame or "", source=source,
+        name=path.stem, frame=frame or "", source=source, shapes=shapes,
     )
 
 

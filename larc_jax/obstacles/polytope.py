@@ -55,6 +55,14 @@ nothing elsewhere. The search itself may be inexact in any way without harm. Deg
 and a zero ``w`` is replaced by a fixed axis, so finite input gives a finite bound; NaN input
 gives NaN (never certifies).
 
+An obstacle polytope (a piece of a mesh or point cloud, :mod:`larc_jax.obstacles.convex_shapes`).
+For ``O = conv(Y)`` the argument is the same with ``min_{x in O} w . x`` attained at a vertex of
+``Y``; that vertex is picked with rounded scores ``fl(w . y_j)`` and may miss the true minimum by
+``<= 12 u |w| max_j |y_j|`` (as the part's support vertex does), so ``max_j |y_j|_1`` joins
+``max_j |v_j|`` in the subtracted term (:func:`polytope_hull_lower_bound`); the first axis points
+from the part's centre to the mean of ``Y``. Both obstacles run the one search :func:`_gjk`, given
+the obstacle's point of least ``w . x``.
+
 :func:`polytope_box_lower_bound` is the JAX kernel for one polytope and one box (batch with
 ``jax.vmap``; it reads the vertices a column at a time, so a gathered vertex table fuses into
 the support reduction instead of being copied per pair); :func:`polytope_box_lower_bound_np` is
@@ -70,7 +78,8 @@ import numpy as np
 
 from ..lazy_jax import jax, jnp
 
-__all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np"]
+__all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np", "polytope_hull_lower_bound",
+           "polytope_hull_lower_bound_np"]
 
 GJK_ITERATIONS = 12
 """GJK steps per polytope-box pair (fixed: the kernel is vectorised over pairs)."""
@@ -173,7 +182,39 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
       converged); <= 0 when the sets may touch; NaN for non-finite input.
     """
     dtype = R.dtype
-    centre, t, lo, hi = (x.astype(dtype) for x in (centre, t, lo, hi))
+    lo, hi = lo.astype(dtype), hi.astype(dtype)
+
+    def lowest(w):  # the box corner of least w . x: exact, no choice error
+        return jnp.where(w > 0, lo, hi)
+
+    finite = jnp.isfinite(lo).all() & jnp.isfinite(hi).all()
+    return _gjk(vertices, part, centre, R, t, lowest, lambda c: jnp.clip(c, lo, hi) - c, None, finite, iterations)
+
+
+def polytope_hull_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,
+                              t: jax.Array, Y: jax.Array, iterations: int = GJK_ITERATIONS) -> jax.Array:
+    """Lower bound on the distance between the placed polytope ``conv(R V + t)`` (as in
+    :func:`polytope_box_lower_bound`) and the obstacle polytope ``conv(Y)``, ``Y`` (K', 3) in the
+    same frame (rows may repeat). The obstacle's point of least ``w . x`` is a vertex picked with
+    rounded scores, which may miss the true minimum by ``<= 12 u |w| max_j |y_j|``: ``max_j |y_j|_1``
+    joins the subtracted term (module docstring), so (S) still holds for any axis."""
+    dtype = R.dtype
+    Y = Y.astype(dtype)
+
+    def lowest(w):
+        return Y[jnp.argmin(Y[:, 0] * w[0] + Y[:, 1] * w[1] + Y[:, 2] * w[2])]
+
+    scale = jnp.max(jnp.abs(Y).sum(axis=1))
+    return _gjk(vertices, part, centre, R, t, lowest, lambda c: jnp.mean(Y, axis=0) - c, scale,
+                jnp.isfinite(Y).all(), iterations)
+
+
+def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_finite, iterations):
+    """The GJK search of the module docstring between the placed polytope and an obstacle given by
+    ``lowest(w)`` (its point of least ``w . x``) and ``seed(c)`` (the first axis from the placed
+    centre ``c``); ``obstacle_scale`` (None: exact) is the obstacle's part of the choice error."""
+    dtype = R.dtype
+    centre, t = (x.astype(dtype) for x in (centre, t))
     table = vertices.astype(dtype)
     unit_x = jnp.array([1.0, 0.0, 0.0], dtype)
     u = float(jnp.finfo(dtype).eps) / 2
@@ -181,6 +222,8 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
     union = R.ndim == 3  # static: several placements
     if union:
         v_max = v_max + jnp.max(jnp.abs(t).sum(axis=1))  # the translations enter the choice
+    if obstacle_scale is not None:
+        v_max = v_max + obstacle_scale
 
     def bound(w, part):
         """(S) at ``w`` less its rounding bound (module docstring), and the point of D = B - P
@@ -197,7 +240,7 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
             m = _dot(R.T, w)  # the axis in the link frame
             k = jnp.argmax(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
             placed = _dot(R, table[part, k]) + t
-        s = jnp.where(w > 0, lo, hi) - placed
+        s = lowest(w) - placed
         norm = jnp.sqrt(_dot(w, w))
         lb = _dot(w, s) / norm
         return lb - 32 * u * (_dot(jnp.abs(w), jnp.abs(s)) / norm + jnp.abs(lb) + v_max), s
@@ -206,7 +249,7 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
         c = jnp.mean(jnp.einsum("pij,j->pi", R, centre, precision=jax.lax.Precision.HIGHEST) + t, axis=0)
     else:
         c = _dot(R, centre) + t
-    best, s = bound(jnp.clip(c, lo, hi) - c, part)
+    best, s = bound(seed(c), part)
     Y = jnp.zeros((4, 3), dtype).at[0].set(s)
     active = jnp.array([True, False, False, False])
 
@@ -225,7 +268,7 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
         return Y, jnp.where(room, lam > 0, active), jnp.where(room, w_new, w), best
 
     _, _, _, best = jax.lax.fori_loop(0, iterations, step, (Y, active, s, best))
-    finite = jnp.isfinite(R).all() & jnp.isfinite(t).all() & jnp.isfinite(lo).all() & jnp.isfinite(hi).all()
+    finite = jnp.isfinite(R).all() & jnp.isfinite(t).all() & obstacle_finite
     return jnp.where(finite, best, jnp.nan)
 
 
@@ -280,14 +323,32 @@ def _nearest_in_simplex_np(Y: np.ndarray, active: np.ndarray):
 
 def polytope_box_lower_bound_np(V, centre, R, t, lo, hi, iterations: int = GJK_ITERATIONS) -> float:
     """NumPy float64 reference of :func:`polytope_box_lower_bound` (same steps, loops)."""
-    V, centre, R, t, lo, hi = (np.asarray(x, np.float64) for x in (V, centre, R, t, lo, hi))
-    if not all(np.isfinite(x).all() for x in (V, R, t, lo, hi)):
+    lo, hi = (np.asarray(x, np.float64) for x in (lo, hi))
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        return math.nan
+    return _gjk_np(V, centre, R, t, lambda w: np.where(w > 0, lo, hi), lambda c: np.clip(c, lo, hi) - c, 0.0,
+                   iterations)
+
+
+def polytope_hull_lower_bound_np(V, centre, R, t, Y, iterations: int = GJK_ITERATIONS) -> float:
+    """NumPy float64 reference of :func:`polytope_hull_lower_bound`."""
+    Y = np.asarray(Y, np.float64)
+    if not np.isfinite(Y).all():
+        return math.nan
+    return _gjk_np(V, centre, R, t, lambda w: Y[int(np.argmin(Y @ w))], lambda c: Y.mean(axis=0) - c,
+                   float(np.abs(Y).sum(axis=1).max()), iterations)
+
+
+def _gjk_np(V, centre, R, t, lowest, seed, obstacle_scale: float, iterations: int) -> float:
+    V, centre, R, t = (np.asarray(x, np.float64) for x in (V, centre, R, t))
+    if not all(np.isfinite(x).all() for x in (V, R, t)):
         return math.nan
 
     u = float(np.finfo(np.float64).eps) / 2
     union = R.ndim == 3
     Rs, ts = (R, t) if union else (R[None], t[None])
     v_max = float(np.abs(V).sum(axis=1).max()) + (float(np.abs(t).sum(axis=1).max()) if union else 0.0)
+    v_max += obstacle_scale
 
     def bound(w):
         if not w @ w > 0:
@@ -297,13 +358,13 @@ def polytope_box_lower_bound_np(V, centre, R, t, lo, hi, iterations: int = GJK_I
             k, i = np.unravel_index(int(np.argmax(scores)), scores.shape)
         else:
             k, i = int(np.argmax(V @ (R.T @ w))), 0
-        s = np.where(w > 0, lo, hi) - (Rs[i] @ V[k] + ts[i])
+        s = lowest(w) - (Rs[i] @ V[k] + ts[i])
         norm = math.sqrt(w @ w)
         lb = float(w @ s) / norm
         return lb - 32 * u * (float(np.abs(w) @ np.abs(s)) / norm + abs(lb) + v_max), s
 
     c = np.mean([Ri @ centre + ti for Ri, ti in zip(Rs, ts)], axis=0) if union else R @ centre + t
-    best, s = bound(np.clip(c, lo, hi) - c)
+    best, s = bound(seed(c))
     Y = np.zeros((4, 3))
     Y[0] = s
     active = np.array([True, False, False, False])

@@ -1,7 +1,7 @@
 """The obstacle protocol: what every kind of obstacle gives the schedulers.
 
-An *obstacle set* is a frozen-dataclass pytree of one kind (axis-aligned boxes today,
-:mod:`larc_jax.obstacles.aligned_boxes`): array fields with a leading item axis ``N`` (and, for a
+An *obstacle set* is a frozen-dataclass pytree of one kind (axis-aligned boxes,
+:mod:`larc_jax.obstacles.aligned_boxes`; posed convex shapes, :mod:`larc_jax.obstacles.convex_shapes`): array fields with a leading item axis ``N`` (and, for a
 batch of scenes, a scene axis before it), a ``mask`` (N,) of real items (padding items are never
 real), and static structure as plain Python values. The schedulers (:mod:`larc_jax.leaf.interval`,
 :mod:`larc_jax.leaf.clearance`, :mod:`larc_jax.leaf.cascade`, :mod:`larc_jax.engine.batch`, the NumPy reference

@@ -109,8 +109,18 @@ def trajectory_sha256(traj) -> str:
 
 def scene_sha256(scene: Scene) -> str:
     """SHA-256 of a scene's canonical bytes: its box names and count (JSON), then the box
-    corners ``lo`` and ``hi`` as little-endian float64."""
-    return _arrays_sha256({"boxes": list(scene.box_names), "n": int(scene.n_boxes)}, scene.lo, scene.hi)
+    corners ``lo`` and ``hi`` as little-endian float64; a scene with posed shapes, meshes or point
+    clouds adds their kinds, names, files' SHA-256 and point radii to the JSON, and the shapes'
+    dimensions, centres and rotation matrices and the pieces' vertices, sizes and owners to the arrays."""
+    if not scene.posed:
+        return _arrays_sha256({"boxes": list(scene.box_names), "n": int(scene.n_boxes)}, scene.lo, scene.hi)
+    sh, ps = scene.shapes, scene.point_sets
+    vertices, sizes, owner = ps.arrays()
+    return _arrays_sha256({"boxes": list(scene.box_names), "n": int(scene.n_boxes), "shapes": list(sh.kinds),
+                           "shape_names": list(sh.names), "point_sets": list(ps.kinds), "point_set_names": list(ps.names),
+                           "point_set_files_sha256": list(ps.file_sha256), "point_radius": list(ps.radius)},
+                          scene.lo, scene.hi, sh.dims, sh.p_world_shape, sh.R_world_shape, vertices,
+                          sizes.astype(np.float64), owner.astype(np.float64))
 
 
 def enclosures_sha256(enc) -> str:
@@ -234,13 +244,13 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
     # Scenes in order of first appearance: the result's box codes are offset in the same order.
     unique = list(dict.fromkeys(id(s) for s in per_traj))
     first = {u: next(s for s in per_traj if id(s) == u) for u in unique}
-    offsets = np.cumsum([0] + [first[u].n_boxes for u in unique])
+    offsets = np.cumsum([0] + [first[u].n_obstacles for u in unique])
     files = list(scene_files) if scene_files is not None else [None] * len(unique)
     if len(files) != len(unique):
         raise LarcInputError(f"certificate: {len(unique)} scenes but {len(files)} scene files")
     scene_docs = [{"file": None if f is None else str(f), "sha256": None if f is None else file_sha256(f),
                    "arrays_sha256": scene_sha256(first[u]), "name": first[u].name,
-                   "boxes": list(first[u].box_names)} for u, f in zip(unique, files)]
+                   "boxes": list(first[u].obstacle_names)} for u, f in zip(unique, files)]
     tfiles = list(trajectory_files) if trajectory_files is not None else [None] * len(trajectories)
     if len(tfiles) != len(trajectories):
         raise LarcInputError(f"certificate: {len(trajectories)} trajectories but {len(tfiles)} trajectory files")

@@ -35,6 +35,7 @@ from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
 from ..leaf.self_collision import SelfPairs, curve_ranges, load_separation, segment_segment_distance_np, self_pairs
 from ..model.robot import Robot
 from ..model.scene import Scene
+from ..model.shapes import shape_project
 from ..model.trajectory import Trajectory
 from ..obstacles import scene_obstacles
 from ..run_spec import RunSpec
@@ -97,6 +98,19 @@ def segment_closest_points(p0, p1, project, iters: int = 200):
             a = m1
     x = point(0.5 * (a + b))
     return x, project(x)
+
+
+def hull_project(Y, x):
+    """The point of conv(``Y``) (K, 3) nearest ``x`` (drawing): bounded least squares on the
+    vertex weights, their sum held at 1 by a heavy row (as :func:`polytope_box_closest_points`)."""
+    from scipy.optimize import lsq_linear
+
+    Y = np.asarray(Y, np.float64)
+    heavy = 1e3
+    A = np.vstack([Y.T, np.full((1, len(Y)), heavy)])
+    fit = lsq_linear(A, np.r_[np.asarray(x, np.float64), heavy], bounds=(0.0, 1.0), method="bvls")
+    w = np.maximum(fit.x, 0.0)
+    return (w / w.sum()) @ Y if w.sum() > 0 else Y[0]
 
 
 def segment_box_closest_points(p0, p1, lo, hi, iters: int = 200):
@@ -200,11 +214,19 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
         c, k = int(c_dec), -1
         pair = _deciding_pair(pairs, ev, c, int(other))
         closest, dist = pair.closest, pair.distance_m
-    elif scene.n_boxes:
+    elif scene.n_obstacles:
         if enc.links is not None and stage != Stage.SWEPT:  # the hull test may have decided the worst pair
             c, k = int(c_dec), int(k_dec)
             part = _deciding_part(robot, enc, traj, scene, leaf, spec.margin_m, bounds, ev, record)
-        closest = segment_box_closest_points(ev.p_world_a[c], ev.p_world_b[c], scene.lo[k], scene.hi[k])
+        if k < scene.n_boxes:
+            closest = segment_box_closest_points(ev.p_world_a[c], ev.p_world_b[c], scene.lo[k], scene.hi[k])
+        elif k < scene.n_boxes + scene.shapes.count:  # a posed shape
+            s = k - scene.n_boxes
+            closest = segment_closest_points(ev.p_world_a[c], ev.p_world_b[c],
+                                             lambda x: shape_project(scene.shapes, s, x))
+        else:  # a piece of a mesh or point cloud: its hull
+            Y = scene.point_sets.pieces[k - scene.n_boxes - scene.shapes.count]
+            closest = segment_closest_points(ev.p_world_a[c], ev.p_world_b[c], lambda x: hull_project(Y, x), iters=60)
         dist = float(np.linalg.norm(closest[0] - closest[1]))
     else:
         c = k = -1

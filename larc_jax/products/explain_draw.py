@@ -43,6 +43,7 @@ from ..io import atomic_write_bytes
 from ..engine.results import Leaf, TrajectoryResult
 from ..model.robot import Robot
 from ..model.scene import Scene
+from ..model.shapes import outline_2d, shape_mesh, shape_outline
 from ..model.trajectory import Trajectory
 
 __all__ = ["Explanation", "DecidingPart", "DecidingPair", "describe_leaf", "tool_capsules", "convex_hull_2d",
@@ -307,6 +308,10 @@ def figure(ex: Explanation, robot: Robot, capsules: CapsuleModel, traj: Trajecto
     if scene.n_boxes:
         lo = np.minimum(lo, np.maximum(scene.lo.min(axis=0), lo - 0.4))
         hi = np.maximum(hi, np.minimum(scene.hi.max(axis=0), hi + 0.4))
+    extents = [shape_mesh(scene.shapes, s).bounds for s in range(scene.shapes.count)]
+    extents += [np.array([v.min(axis=0), v.max(axis=0)]) for v in scene.point_sets.pieces]
+    for bounds in extents:
+        lo, hi = np.minimum(lo, np.maximum(bounds[0], lo - 0.4)), np.maximum(hi, np.minimum(bounds[1], hi + 0.4))
     pad = 0.04
     lo, hi = lo - pad, hi + pad
 
@@ -339,6 +344,22 @@ def figure(ex: Explanation, robot: Robot, capsules: CapsuleModel, traj: Trajecto
             ax.annotate(name, (cx, cy), xytext=(0, 2), textcoords="offset points", ha="center",
                         va="bottom", fontsize=9, color="#8e0000" if mine else "0.35",
                         fontweight="bold" if mine else "normal", clip_on=True, zorder=6)
+        shape_count = scene.shapes.count
+        for s in range(shape_count + scene.point_sets.count):  # shapes, pieces: their projected outlines
+            mine = scene.n_boxes + s == blocking_k
+            if s >= shape_count and not mine:  # pieces of meshes and clouds: filled, unnamed
+                ax.add_patch(Polygon(outline_2d(scene.point_sets.pieces[s - shape_count][:, [i, j]]), closed=True,
+                                     facecolor="0.55", alpha=0.18, edgecolor="none", zorder=1))
+                continue
+            flat = (shape_outline(scene.shapes, s, (i, j)) if s < shape_count
+                    else outline_2d(scene.point_sets.pieces[s - shape_count][:, [i, j]]))
+            ax.add_patch(Polygon(flat, closed=True, facecolor=_RED if mine else "0.55", alpha=0.45 if mine else 0.18,
+                                 edgecolor="#8e0000" if mine else "0.45", linewidth=2.0 if mine else 0.8,
+                                 zorder=1 if not mine else 2))
+            ax.annotate(scene.obstacle_names[scene.n_boxes + s], (float(flat[:, 0].mean()), float(flat[:, 1].max())), xytext=(0, 2),
+                        textcoords="offset points", ha="center", va="bottom", fontsize=9,
+                        color="#8e0000" if mine else "0.35", fontweight="bold" if mine else "normal",
+                        clip_on=True, zorder=6)
         order = [c for c in range(C) if c not in red] + red
         for c in order:
             mine = c in red

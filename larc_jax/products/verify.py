@@ -217,9 +217,9 @@ def _load_scenes(docs: list, files: list, robot, pins: VerifyPins, facts: list) 
         _check_hash(file.sha256, file.recorded_sha256, f"scene file {path}")
         scene = read_scene(path, frame=robot.link_names[0])
         arrays = _get(doc, "arrays_sha256", where, str)
-        _check_hash(scene_sha256(scene), arrays, f"scene {path} (its boxes)")
+        _check_hash(scene_sha256(scene), arrays, f"scene {path} (its obstacles)")
         scenes.append(scene)
-        facts.append(SceneFacts(index=k, file=file, arrays_sha256=arrays, boxes=tuple(scene.box_names)))
+        facts.append(SceneFacts(index=k, file=file, arrays_sha256=arrays, boxes=tuple(scene.obstacle_names)))
     return scenes
 
 

@@ -60,7 +60,8 @@ class SceneFacts:
     file: InputFile
     arrays_sha256: str
     boxes: tuple[str, ...]
-    """Names of the boxes read (none: the certificate claims nothing about obstacles)."""
+    """Names of the obstacles read, boxes then posed shapes (none: the certificate claims nothing
+    about obstacles)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -438,7 +439,7 @@ def report_lines(report: VerifyReport) -> list[str]:
     if report.robot is not None:
         out += _robot_lines(report.robot)
     for s in report.scene_files:
-        boxes = f"{len(s.boxes)} boxes" if s.boxes else "0 boxes: no obstacle, the claim says nothing about obstacles"
+        boxes = f"{len(s.boxes)} obstacles" if s.boxes else "0 obstacles: the claim says nothing about obstacles"
         out.append(f"  scene {s.index}: {_file_line(s.file)}; arrays sha256 {s.arrays_sha256}; {boxes}")
     scenes = {s.index: s for s in report.scene_files}
     out += [_trajectory_line(t, scenes) for t in report.trajectory_files]

@@ -31,6 +31,7 @@ import threading
 import numpy as np
 
 from ..errors import LarcInputError
+from ..model.shapes import shape_mesh
 from .view_data import (STAGE_COLOURS, ViewData, deciding, leaf_colours, leaf_detail, link_meshes, link_poses, timeline_image,
                         wxyz)
 
@@ -126,6 +127,14 @@ class Viewer:
             sc.add_box(f"/boxes/{k}", color=BOX_RGB, dimensions=tuple(scene.hi[k] - scene.lo[k]),
                        position=tuple(0.5 * (scene.hi[k] + scene.lo[k])), opacity=0.85)
             for k in range(scene.n_boxes)]
+        for k in range(scene.shapes.count):  # posed shapes, faceted for drawing
+            mesh = shape_mesh(scene.shapes, k)
+            self.box_handles.append(sc.add_mesh_simple(
+                f"/shapes/{k}", np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32),
+                color=BOX_RGB, opacity=0.85))
+        if scene.point_sets.count:  # meshes and clouds: the vertices of their pieces
+            points = np.concatenate(scene.point_sets.pieces).astype(np.float32)
+            self.box_handles.append(sc.add_point_cloud("/points", points=points, colors=BOX_RGB, point_size=0.004))
         t0, t1 = float(it.traj.t[0]), float(it.traj.t[-1])
         self.time_slider.min, self.time_slider.max = t0, max(t1, t0 + 1e-3)
         self.time_slider.step = max((t1 - t0) / 1000, 1e-6)
@@ -181,7 +190,7 @@ class Viewer:
             f"{deciding(lv, j)}, clearance {lv.clearance_m[j] * 1000:+.2f} mm"
             + (f", capsule {caps.names[det.capsule]}" if det.capsule >= 0 else "")
             + (f" / capsule {caps.names[det.other]}" if det.other >= 0 else
-               f" / box {it.scene.box_names[det.box]}" if 0 <= det.box < it.scene.n_boxes else ""))
+               f" / obstacle {it.scene.obstacle_names[det.box]}" if 0 <= det.box < it.scene.n_obstacles else ""))
         if not self.show_leaf.value:
             return
         sc, nodes = self.server.scene, []
@@ -202,6 +211,10 @@ class Viewer:
             k = det.box
             nodes.append(sc.add_box("/leaf/box", color=PAIR_RGB, dimensions=tuple(it.scene.hi[k] - it.scene.lo[k]),
                                     position=tuple(0.5 * (it.scene.hi[k] + it.scene.lo[k])), wireframe=True))
+        elif it.scene.n_boxes <= det.box < it.scene.n_obstacles and det.other < 0:
+            mesh = shape_mesh(it.scene.shapes, det.box - it.scene.n_boxes)
+            nodes.append(sc.add_mesh_simple("/leaf/box", np.asarray(mesh.vertices, np.float32),
+                                            np.asarray(mesh.faces, np.uint32), color=PAIR_RGB, wireframe=True))
         if det.closest is not None:
             seg = np.array([[det.closest[0], det.closest[1]]], np.float32)
             nodes.append(sc.add_line_segments("/leaf/closest", points=seg, colors=(0, 0, 0), thickness=0.003))

@@ -161,7 +161,7 @@ def _table_leaves(df, tid: str, capsules: CapsuleModel, scene: Scene, source: st
     if not len(rows):
         return None
     caps = {n: i for i, n in enumerate(capsules.names)}
-    boxes = {n: i for i, n in enumerate(scene.box_names)}
+    boxes = {n: i for i, n in enumerate(scene.obstacle_names)}
 
     def index(names, table, what):
         out = []

@@ -1,0 +1,312 @@
+"""Meshes and point clouds as obstacles (issue 22): convex pieces that contain them, the hull
+bound's kernels against their NumPy twins and one-sided against python-fcl (a BVH of the mesh's
+triangles) and brute-force point distances, the files and their errors, and end to end: the
+camera cell certifies reach_left, an FCL audit agrees, the certificate verifies and a changed
+cloud file is refused, and a bracket slid toward the arm until certification flips still clears
+the margin there."""
+
+from __future__ import annotations
+
+import io
+import math
+import shutil
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from larc_jax.errors import LarcInputError
+from larc_jax.model.point_sets import PointSets, convex_pieces
+from larc_jax.model.scene import Scene, read_scene, scene_from_dict
+from larc_jax.obstacles import ConvexShapes, scene_obstacles, stack_scenes
+from tests.capsule_audit import capsule_clearance, last_certified
+
+EX = Path(__file__).resolve().parent.parent / "configs" / "examples"
+
+
+def test_example_files_are_what_the_generator_writes(tmp_path):
+    from experiments.example_cell import main
+
+    assert main(["--out", str(tmp_path)]) == 0
+    for name in ("bracket.stl", "table_cloud.npy"):
+        assert (tmp_path / name).read_bytes() == (EX / name).read_bytes(), name
+
+
+def test_pieces_hold_every_point_and_every_triangle():
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(1000, 3))
+    pieces = convex_pieces(P, None, 32)
+    assert all(len(p) <= 32 for p in pieces) and sum(len(p) for p in pieces) == len(P)
+    assert {tuple(x) for p in pieces for x in p} == {tuple(x) for x in P}
+    from experiments.example_cell import bracket_mesh
+
+    m = bracket_mesh()
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    pieces = convex_pieces(V, F, 4)
+    for tri in F:  # every triangle's three corners lie in one piece
+        assert any(all((piece == V[c]).all(axis=1).any() for c in tri) for piece in pieces)
+
+
+def _camera_scene() -> Scene:
+    return read_scene(EX / "cell_camera.yaml", frame="base_link")
+
+
+def test_camera_cell_reads_its_files():
+    scene = _camera_scene()
+    ps = scene.point_sets
+    assert ps.kinds == ("mesh", "points") and ps.names == ("bracket", "table")
+    assert scene.n_boxes == 0 and scene.shapes.count == 0 and scene.n_obstacles == ps.count
+    cloud = np.load(EX / "table_cloud.npy")
+    assert sum(len(p) for p, o in zip(ps.pieces, ps.owner) if o == 1) == len(cloud)
+    assert ps.radius == (0.0, 0.002) and len(ps.file_sha256[0]) == 64
+    assert scene.obstacle_names[0] == "bracket[0]" and scene.obstacle_names[-1].startswith("table[")
+    assert isinstance(scene_obstacles(scene), ConvexShapes) and scene_obstacles(scene).any_polytope
+
+
+@pytest.mark.parametrize("entry,needle", [
+    ({"type": "mesh"}, r"obstacles\[0\]\.file must be a file name"),
+    ({"type": "mesh", "file": "nowhere.stl"}, r"nowhere\.stl"),
+    ({"type": "points", "file": "cloud.pcd"}, r"points are read from \.npy .* or \.ply"),
+    ({"type": "points", "file": "flat.npy"}, r"expected an \(N, 3\) array"),
+    ({"type": "points", "file": "nan.npy"}, r"point 1 is not finite"),
+    ({"type": "points", "file": "ok.npy", "radius": -1}, r"radius must not be negative"),
+    ({"type": "mesh", "file": "junk.stl"}, r"junk\.stl: (not a readable mesh|the mesh has no triangles)"),
+    ({"type": "mesh", "file": "ok.stl", "scale": [1, 0, 1]}, r"scale must be positive"),
+    ({"type": "mesh", "file": "ok.stl", "size": [1, 1, 1]}, r"'size'"),
+])
+def test_point_set_entries_errors_name_the_entry(tmp_path, entry, needle):
+    np.save(tmp_path / "flat.npy", np.zeros((4, 2)))
+    np.save(tmp_path / "nan.npy", np.array([[0, 0, 0], [np.nan, 0, 0]]))
+    np.save(tmp_path / "ok.npy", np.zeros((4, 3)))
+    (tmp_path / "cloud.pcd").write_text("VERSION .7\n")
+    (tmp_path / "junk.stl").write_bytes(b"\x00" * 7)
+    shutil.copy(EX / "bracket.stl", tmp_path / "ok.stl")
+    source = str(tmp_path / "scene.yaml")
+    with pytest.raises(LarcInputError, match=needle) as err:
+        scene_from_dict({"frame": "base_link", "obstacles": [entry]}, source=source)
+    assert str(err.value).startswith(source) and "\n" not in str(err.value)
+
+
+@pytest.fixture(scope="module")
+def values():
+    """The camera cell (its bracket posed as in the file, the cloud thinned to keep FCL fast) and
+    every JAX kernel on it in float64 and float32."""
+    full = _camera_scene()
+    ps = full.point_sets
+    keep = [g for g, o in enumerate(ps.owner) if o == 0] + [g for g, o in enumerate(ps.owner) if o == 1][::8]
+    scene = Scene(lo=np.zeros((0, 3)), hi=np.zeros((0, 3)), point_sets=PointSets(
+        kinds=ps.kinds, names=ps.names, files=ps.files, file_sha256=ps.file_sha256, radius=ps.radius,
+        pieces=tuple(ps.pieces[g] for g in keep), owner=tuple(ps.owner[g] for g in keep)))
+    rng = np.random.default_rng(1)
+    p_a = rng.uniform([-0.5, -0.5, -0.05], [0.8, 0.6, 0.4], (30, 3))
+    p_b = p_a + rng.normal(0, 0.08, (30, 3))
+    table = rng.normal(0, 0.03, (1, 10, 3))
+    R = Rotation.random(12, random_state=rng).as_matrix()
+    t = rng.uniform([-0.5, -0.5, 0.0], [0.8, 0.6, 0.3], (12, 3))
+
+    def kernels(ob, p_a, p_b, table, R, t):
+        seg = (ob.segment_distances(p_a, p_b), ob.segment_lower_bounds(p_a, p_b), ob.point_distances(p_a))
+        one = jax.vmap(lambda item, r, tt: type(item).polytope_lower_bound(item, table, 0, table[0].mean(0), r, tt),
+                       (None, 0, 0))
+        return (*seg, jax.vmap(one, (0, None, None))(ob, R, t))
+
+    out = {}
+    with jax.enable_x64(True):
+        for dtype in (np.float64, np.float32):
+            ob = stack_scenes([scene], dtype).take(0)
+            cast = lambda x: np.asarray(x, dtype)  # noqa: E731
+            out[np.dtype(dtype).name] = [np.asarray(x, np.float64) for x in
+                                         jax.jit(kernels)(ob, cast(p_a), cast(p_b), cast(table), cast(R), cast(t))]
+    return scene, p_a, p_b, table, R, t, out
+
+
+def test_jax_kernels_equal_numpy_twins(values):
+    scene, p_a, p_b, table, R, t, out = values
+    dist, lb, point, poly = out["float64"]
+    ob = scene_obstacles(scene)
+    for k in list(range(4)) + list(range(scene.n_obstacles - 3, scene.n_obstacles)):
+        item = ob.take(k)
+        for s in range(0, len(p_a), 3):
+            assert dist[s, k] == pytest.approx(item.segment_distance_np(p_a[s], p_b[s]), abs=1e-12)
+            assert lb[s, k] == pytest.approx(item.segment_lower_bound_np(p_a[s], p_b[s]), abs=1e-12)
+            assert lb[s, k] <= dist[s, k] + 1e-15
+        np.testing.assert_allclose(point[:, k], item.point_distance_np(p_a), atol=1e-12)
+        for i in range(len(R)):
+            assert poly[k, i] == pytest.approx(item.polytope_lower_bound_np(table[0], table[0].mean(0), R[i], t[i]),
+                                               abs=1e-12)
+
+
+def _truth(scene):
+    """FCL's bracket (a BVH of its triangles, posed) and the cloud's points with their radius."""
+    import fcl
+    import trimesh
+
+    from larc_jax.model.shapes import rotation_from_quaternion
+
+    mesh = trimesh.load(EX / "bracket.stl")
+    R = rotation_from_quaternion([0.0, 0.0, 0.9238795325112867, -0.3826834323650898])
+    V = np.asarray(mesh.vertices) @ R.T + [-0.275, 0.325, 0.0]
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(V), len(mesh.faces))
+    bvh.addSubModel(V, np.asarray(mesh.faces))
+    bvh.endModel()
+    cloud = np.concatenate([p for p, o in zip(scene.point_sets.pieces, scene.point_sets.owner) if o == 1])
+    return fcl.CollisionObject(bvh, fcl.Transform()), cloud, scene.point_sets.radius[1]
+
+
+def _point_to_mesh(obj, p) -> float:
+    import fcl
+
+    ball = fcl.CollisionObject(fcl.Sphere(0.0), fcl.Transform(np.asarray(p, np.float64)))
+    return max(fcl.distance(ball, obj, fcl.DistanceRequest(), fcl.DistanceResult()), 0.0)
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_bounds_never_exceed_fcl_or_the_points(values, dtype):
+    """One-sided: the smallest bound over the bracket's pieces <= FCL's distance from densely
+    sampled segment points to the bracket's triangles; over the cloud's pieces <= the smallest
+    point distance less the radius (the segment kernels use a piece's bounding box). The hull
+    bound of the hull stage is also tight: within 1 mm of FCL's polytope-mesh distance at the
+    median, and never above it."""
+    scene, p_a, p_b, table, R, t, out = values
+    dist, lb, point, poly = out[dtype]
+    mesh, cloud, radius = _truth(scene)
+    bracket = np.array(scene.point_sets.owner) == 0
+    grid = np.linspace(0.0, 1.0, 101)
+    gaps = []
+    for s in range(len(p_a)):
+        pts = p_a[s] + grid[:, None] * (p_b[s] - p_a[s])
+        to_mesh = min(_point_to_mesh(mesh, x) for x in pts)
+        to_cloud = float(np.sqrt(((pts[:, None] - cloud[None]) ** 2).sum(-1)).min()) - radius
+        assert dist[s, bracket].min() <= to_mesh + 1e-12 and dist[s, ~bracket].min() <= to_cloud + 1e-12, s
+    # the hull-stage bound against the placed polytope's points, and against FCL's convex-mesh distance
+    import fcl
+    import trimesh
+
+    W = np.vstack([np.eye(table.shape[1]), np.random.default_rng(2).dirichlet(np.ones(table.shape[1]), 20)])
+    for i in range(len(R)):
+        placed = table[0] @ R[i].T + t[i]
+        pts = W @ placed
+        assert poly[bracket, i].min() <= min(_point_to_mesh(mesh, x) for x in pts) + 1e-12, i
+        to_cloud = float(np.sqrt(((pts[:, None] - cloud[None]) ** 2).sum(-1)).min()) - radius
+        assert poly[~bracket, i].min() <= to_cloud + 1e-12, i
+        hull = trimesh.convex.convex_hull(placed)
+        faces = np.hstack([np.full((len(hull.faces), 1), 3), hull.faces]).ravel()
+        convex = fcl.CollisionObject(fcl.Convex(np.asarray(hull.vertices), len(hull.faces), faces), fcl.Transform())
+        exact = max(fcl.distance(convex, mesh, fcl.DistanceRequest(), fcl.DistanceResult()), 0.0)
+        assert poly[bracket, i].min() <= exact + 1e-9, i
+        gaps.append(exact - poly[bracket, i].min())
+    assert np.median(gaps) < 1e-3, gaps
+
+
+# ---------------------------------------------------------------------------------------------- end to end
+
+def test_camera_cell_certifies_verifies_and_refuses_a_changed_cloud(robot, capsules, tmp_path):
+    from larc_jax import certify, verify_certificate, write_certificate
+    from larc_jax.model.trajectory_files import read_trajectory
+
+    for name in ("cell_camera.yaml", "bracket.stl", "table_cloud.npy", "reach_left.yaml"):
+        shutil.copy(EX / name, tmp_path / name)
+    traj, scene = read_trajectory(tmp_path / "reach_left.yaml"), read_scene(tmp_path / "cell_camera.yaml")
+    res = certify(traj, scene, robot, capsules, method="larc")
+    assert res[0].certified
+    path = tmp_path / "cert.json"
+    write_certificate(path, res, [traj], [scene], robot, capsules, trajectory_files=[tmp_path / "reach_left.yaml"],
+                      scene_files=[tmp_path / "cell_camera.yaml"])
+    verify_certificate(path)
+    cloud = np.load(tmp_path / "table_cloud.npy")
+    cloud[0, 2] += 1e-3
+    buf = io.BytesIO()
+    np.save(buf, cloud)
+    (tmp_path / "table_cloud.npy").write_bytes(buf.getvalue())
+    with pytest.raises(Exception, match="obstacles"):
+        verify_certificate(path)
+
+
+def test_bracket_slid_to_the_flip_still_clears_the_margin(robot, capsules):
+    from larc_jax import certify
+    from larc_jax.defaults import DEFAULT_MARGIN_M
+    from larc_jax.model.trajectory_files import read_trajectory
+
+    traj = read_trajectory(EX / "reach_left.yaml")
+    full = _camera_scene()
+    ps = full.point_sets
+    mine = [g for g, o in enumerate(ps.owner) if o == 0]
+    toward = -np.array([-0.275, 0.325, 0.0]) / np.linalg.norm([-0.275, 0.325])  # toward the arm's base
+
+    def moved(s):
+        return Scene(lo=np.zeros((0, 3)), hi=np.zeros((0, 3)), point_sets=PointSets(
+            kinds=ps.kinds[:1], names=ps.names[:1], files=ps.files[:1], file_sha256=ps.file_sha256[:1],
+            radius=ps.radius[:1], pieces=tuple(ps.pieces[g] + s * toward for g in mine), owner=tuple(0 for _ in mine)))
+
+    def ok(s):
+        return certify(traj, moved(s), robot, capsules, method="larc", enclosure="capsules")[0].certified
+
+    lo = last_certified(ok, 0.0, 0.1, 10)
+    scene = moved(lo)
+    # the truth: FCL on the bracket's triangles moved by the same amount
+    import fcl
+    import trimesh
+
+    from larc_jax.model.shapes import rotation_from_quaternion
+
+    mesh = trimesh.load(EX / "bracket.stl")
+    R = rotation_from_quaternion([0.0, 0.0, 0.9238795325112867, -0.3826834323650898])
+    V = np.asarray(mesh.vertices) @ R.T + [-0.275, 0.325, 0.0] + lo * toward
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(V), len(mesh.faces))
+    bvh.addSubModel(V, np.asarray(mesh.faces))
+    bvh.endModel()
+    clearance = capsule_clearance(robot, capsules, traj, [fcl.CollisionObject(bvh, fcl.Transform())])
+    assert clearance > DEFAULT_MARGIN_M
+    assert clearance - DEFAULT_MARGIN_M < 0.03, clearance  # the motion bound's slack, not a vacuous pass
+    assert scene.point_sets.count == len(mine)
+
+
+def test_fcl_audit_of_the_certified_move_in_the_camera_cell(robot, capsules):
+    """Every capsule stays more than the margin from the bracket's triangles (FCL) and from every
+    cloud point less its radius, over 300 states of the certified move."""
+    from larc_jax.defaults import DEFAULT_MARGIN_M
+    from larc_jax.enclosure.capsule import capsule_segments_np
+    from larc_jax.model.hermite_reference import evaluate_np
+    from larc_jax.model.trajectory_files import read_trajectory
+    from larc_jax.obstacles.geometry import segment_box_distance_np
+
+    traj, scene = read_trajectory(EX / "reach_left.yaml"), _camera_scene()
+    mesh, cloud, radius = _truth(scene)
+    assert capsule_clearance(robot, capsules, traj, [mesh]) > DEFAULT_MARGIN_M
+    worst = math.inf
+    for time in np.linspace(traj.t[0], traj.t[-1], 300):
+        q, _ = evaluate_np(traj.t, traj.q, traj.qd, time)
+        p_a, p_b = capsule_segments_np(robot, capsules, q)[:2]
+        for a, b, r in zip(p_a, p_b, np.asarray(capsules.radius)):
+            near = cloud[np.linalg.norm(cloud - (a + b) / 2, axis=1) < np.linalg.norm(b - a) / 2 + r + 0.05]
+            for x in near:
+                worst = min(worst, segment_box_distance_np(a, b, x, x) - r - radius)
+    assert worst > DEFAULT_MARGIN_M
+
+
+@pytest.mark.parametrize("kwargs,needle", [
+    (dict(kinds=("mesh",), names=("a",), files=("f",), file_sha256=("",), radius=(0.0,), pieces=(np.zeros((2, 2)),),
+          owner=(0,)), r"PointSets\.pieces\[0\] must have shape \(N, 3\)"),
+    (dict(kinds=("mesh",), names=("a",), files=("f",), file_sha256=("",), radius=(0.0,), pieces=(np.zeros((2, 3)),),
+          owner=(1,)), r"PointSets\.owner\[0\] = 1 is not an obstacle index"),
+    (dict(kinds=("cloud",), names=("a",), files=("f",), file_sha256=("",), radius=(0.0,)), r"PointSets\.kinds\[0\]"),
+    (dict(kinds=("points",), names=("a",), files=("f",), file_sha256=("",), radius=(-1.0,)), r"PointSets\.radius\[0\]"),
+    (dict(kinds=("points",), names=("a",), files=("f",), file_sha256=("",), radius=(0.0,),
+          pieces=(np.array([[0, 0, np.nan]]),), owner=(0,)), r"all finite"),
+    (dict(kinds=("points", "points"), names=("a", "b"), files=("f",), file_sha256=("",), radius=(0.0,)),
+     r"files has 1 entries"),
+])
+def test_point_sets_api_errors(kwargs, needle):
+    with pytest.raises(LarcInputError, match=needle):
+        PointSets(**kwargs)
+
+
+def test_fcl_audit_refuses_point_sets():
+    from experiments.collision import SceneBoxes
+
+    with pytest.raises(ValueError, match="does not read meshes or point clouds"):
+        SceneBoxes.from_scene(_camera_scene())
