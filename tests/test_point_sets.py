@@ -310,3 +310,58 @@ def test_fcl_audit_refuses_point_sets():
 
     with pytest.raises(ValueError, match="does not read meshes or point clouds"):
         SceneBoxes.from_scene(_camera_scene())
+
+
+def test_explain_measures_a_piece_as_the_capsule_test_does(tmp_path, capsys):
+    """`larc explain` on the camera cell: the worst leaf is decided by a bracket piece, and the
+    distance it prints (to the piece's bounding box, what the capsule test measures) less the
+    shell is the printed clearance; the figure is written."""
+    import re
+
+    from larc_jax.drivers.cli import main
+
+    png = tmp_path / "why.png"
+    assert main(["explain", str(EX / "reach_left.yaml"), "--scene", str(EX / "cell_camera.yaml"), "--leaf", "worst",
+                 "-o", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "bracket[" in out and png.stat().st_size > 10_000
+    g = float(re.search(r"clearance ([+-][\d.]+) mm", out).group(1))
+    d, r, rho, b = (float(x) for x in re.search(
+        r"distance ([\d.]+) mm vs shell r \+ margin \+ motion = ([\d.]+) \+ ([\d.]+) \+ ([\d.]+) mm", out).groups())
+    assert d - (r + rho + b) == pytest.approx(g, abs=0.02)
+
+
+def test_view_draws_shapes_and_pieces(tmp_path):
+    """`larc view` on a certificate whose scene holds a box, a posed cylinder, the bracket and the
+    cloud: one handle per box and shape, one point cloud for the pieces; a leaf recorded on a
+    piece is drawn with that piece."""
+    pytest.importorskip("viser")
+    import socket
+
+    from larc_jax.drivers.cli import main
+    from larc_jax.products.view import view
+
+    for name in ("bracket.stl", "table_cloud.npy", "reach_left.yaml"):
+        shutil.copy(EX / name, tmp_path / name)
+    text = (EX / "cell_camera.yaml").read_text() + (
+        "  - {name: post, type: cylinder, radius: 0.04, length: 0.45, pose: {position: [0.34, 0.0, 0.225]}}\n"
+        "boxes:\n  - {name: tray, min: [0.10, -0.45, 0.0], max: [0.30, -0.30, 0.08]}\n")
+    (tmp_path / "cell.yaml").write_text(text)
+    cert = tmp_path / "cert.json"
+    assert main(["certify", str(tmp_path / "reach_left.yaml"), "--scene", str(tmp_path / "cell.yaml"),
+                 "--certificate", str(cert), "-q"]) == 0
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    v = view(cert, port=port, block=False)
+    try:
+        scene = v.data.items[0].scene
+        assert scene.n_boxes == 1 and scene.shapes.count == 1 and scene.point_sets.count > 2
+        assert len(v.box_handles) == 1 + 1 + 1  # the tray, the post, the pieces' points
+        leaves = v.data.items[0].leaves
+        on_piece = np.flatnonzero(leaves.box >= scene.n_boxes + scene.shapes.count)
+        assert len(on_piece)
+        v.select_leaf(int(on_piece[0]))
+        assert v._leaf_nodes
+    finally:
+        v.stop()

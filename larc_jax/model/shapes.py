@@ -239,10 +239,13 @@ def outline_2d(points: np.ndarray) -> np.ndarray:
     if len(pts) < 3:
         return pts
 
+    def turn(o, a, b) -> float:  # z of the 2-D cross product (a - o) x (b - o)
+        return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
     def half(points):
         out: list = []
         for p in points:
-            while len(out) >= 2 and np.cross(out[-1] - out[-2], p - out[-2]) <= 0:
+            while len(out) >= 2 and turn(out[-2], out[-1], p) <= 0:
                 out.pop()
             out.append(p)
         return out[:-1]

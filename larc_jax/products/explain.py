@@ -100,19 +100,6 @@ def segment_closest_points(p0, p1, project, iters: int = 200):
     return x, project(x)
 
 
-def hull_project(Y, x):
-    """The point of conv(``Y``) (K, 3) nearest ``x`` (drawing): bounded least squares on the
-    vertex weights, their sum held at 1 by a heavy row (as :func:`polytope_box_closest_points`)."""
-    from scipy.optimize import lsq_linear
-
-    Y = np.asarray(Y, np.float64)
-    heavy = 1e3
-    A = np.vstack([Y.T, np.full((1, len(Y)), heavy)])
-    fit = lsq_linear(A, np.r_[np.asarray(x, np.float64), heavy], bounds=(0.0, 1.0), method="bvls")
-    w = np.maximum(fit.x, 0.0)
-    return (w / w.sum()) @ Y if w.sum() > 0 else Y[0]
-
-
 def segment_box_closest_points(p0, p1, lo, hi, iters: int = 200):
     """Closest points between segment [p0, p1] and box [lo, hi] (for drawing only)."""
     return segment_closest_points(p0, p1, lambda x: np.clip(x, lo, hi), iters)
@@ -224,9 +211,9 @@ def explain(robot: Robot, capsules: CapsuleModel, traj: Trajectory, scene: Scene
             s = k - scene.n_boxes
             closest = segment_closest_points(ev.p_world_a[c], ev.p_world_b[c],
                                              lambda x: shape_project(scene.shapes, s, x))
-        else:  # a piece of a mesh or point cloud: its hull
+        else:  # a piece of a mesh or point cloud: the capsule test measures its bounding box
             Y = scene.point_sets.pieces[k - scene.n_boxes - scene.shapes.count]
-            closest = segment_closest_points(ev.p_world_a[c], ev.p_world_b[c], lambda x: hull_project(Y, x), iters=60)
+            closest = segment_box_closest_points(ev.p_world_a[c], ev.p_world_b[c], Y.min(axis=0), Y.max(axis=0))
         dist = float(np.linalg.norm(closest[0] - closest[1]))
     else:
         c = k = -1

@@ -351,8 +351,14 @@ def figure(ex: Explanation, robot: Robot, capsules: CapsuleModel, traj: Trajecto
                 ax.add_patch(Polygon(outline_2d(scene.point_sets.pieces[s - shape_count][:, [i, j]]), closed=True,
                                      facecolor="0.55", alpha=0.18, edgecolor="none", zorder=1))
                 continue
-            flat = (shape_outline(scene.shapes, s, (i, j)) if s < shape_count
-                    else outline_2d(scene.point_sets.pieces[s - shape_count][:, [i, j]]))
+            if s < shape_count:
+                flat = shape_outline(scene.shapes, s, (i, j))
+            else:  # the blocking piece: the bounding box the capsule test measured, around its hull
+                piece = scene.point_sets.pieces[s - shape_count][:, [i, j]]
+                (x0, y0), (x1, y1) = piece.min(axis=0), piece.max(axis=0)
+                ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="#8e0000", linewidth=1.0,
+                                       linestyle="--", zorder=2))
+                flat = outline_2d(piece)
             ax.add_patch(Polygon(flat, closed=True, facecolor=_RED if mine else "0.55", alpha=0.45 if mine else 0.18,
                                  edgecolor="#8e0000" if mine else "0.45", linewidth=2.0 if mine else 0.8,
                                  zorder=1 if not mine else 2))

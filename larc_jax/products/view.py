@@ -211,10 +211,15 @@ class Viewer:
             k = det.box
             nodes.append(sc.add_box("/leaf/box", color=PAIR_RGB, dimensions=tuple(it.scene.hi[k] - it.scene.lo[k]),
                                     position=tuple(0.5 * (it.scene.hi[k] + it.scene.lo[k])), wireframe=True))
-        elif it.scene.n_boxes <= det.box < it.scene.n_obstacles and det.other < 0:
+        elif it.scene.n_boxes <= det.box < it.scene.n_boxes + it.scene.shapes.count and det.other < 0:
             mesh = shape_mesh(it.scene.shapes, det.box - it.scene.n_boxes)
             nodes.append(sc.add_mesh_simple("/leaf/box", np.asarray(mesh.vertices, np.float32),
                                             np.asarray(mesh.faces, np.uint32), color=PAIR_RGB, wireframe=True))
+        elif det.box < it.scene.n_obstacles and det.other < 0 and det.box >= 0:  # a piece: its bounding box
+            piece = it.scene.point_sets.pieces[det.box - it.scene.n_boxes - it.scene.shapes.count]
+            lo, hi = piece.min(axis=0), piece.max(axis=0)
+            nodes.append(sc.add_box("/leaf/box", color=PAIR_RGB, dimensions=tuple(np.maximum(hi - lo, 1e-4)),
+                                    position=tuple(0.5 * (hi + lo)), wireframe=True))
         if det.closest is not None:
             seg = np.array([[det.closest[0], det.closest[1]]], np.float32)
             nodes.append(sc.add_line_segments("/leaf/closest", points=seg, colors=(0, 0, 0), thickness=0.003))
