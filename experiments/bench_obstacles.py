@@ -1,6 +1,6 @@
 """Benchmark: what each obstacle kind costs per interval (issue 22 item 3, the kinds built so far).
 
-    python -m experiments.bench_obstacles [--json results/bench/obstacles_cpu.json] [--n 64]
+    python -m experiments.bench_obstacles [--json results/bench/obstacles_cpu.json] [--n 16]
 
 The first ``--n`` (16) committed Stage B trajectories, each certified by fixed-fine (512 intervals,
 depth 9: the same work whatever the scene decides) in one call, against one scene at a time:
@@ -24,7 +24,6 @@ warm time over that of ``one box`` with the same enclosure, measured in this run
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
