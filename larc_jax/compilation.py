@@ -38,6 +38,7 @@ import threading
 from pathlib import Path
 
 __all__ = ["CACHE_ENV", "default_cache_dir", "cache_dir_from_env", "enable_compile_cache", "cached_kernel_call",
+           "cached_kernel", "tracked_call",
            "CompileClock"]
 
 CACHE_ENV = "LARC_COMPILE_CACHE"
@@ -121,6 +122,49 @@ def cached_kernel_call(fn, args: tuple):
     if call is None:
         call = _LOADED[key] = _load_or_export(fn, treedef, avals, _EXPORT_DIR / f"{fn.__name__}-{key[:40]}.jaxexport")
     return call(*leaves)
+
+
+_SEEN: set = set()
+"""Call signatures (function, shapes, dtypes, static structure) seen by :func:`tracked_call` with
+an ``on_compile`` listener: a call with a new one compiles first (or loads from the persistent
+cache). Tracked only when someone listens, so the default path pays nothing."""
+
+
+def tracked_call(fn, args: tuple, on_compile):
+    """``fn(*args)``, telling ``on_compile`` (True, then False) when the call compiles (a signature
+    this process has not called ``fn`` with)."""
+    if on_compile is None:
+        return fn(*args)
+    import jax
+    import numpy as np
+
+    leaves = jax.tree.leaves(args)
+    sig = (fn, jax.tree.structure(args), tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
+           jax.config.jax_enable_x64)
+    new = sig not in _SEEN
+    if new:
+        on_compile(True)
+    try:
+        return fn(*args)
+    finally:
+        _SEEN.add(sig)
+        if new:
+            on_compile(False)
+
+
+_CACHED_KERNELS: dict = {}
+
+
+def cached_kernel(kernel):
+    """``kernel`` (jitted, returning a tuple of arrays) through :func:`cached_kernel_call`: one
+    callable per kernel, so that :func:`tracked_call` recognises a shape it has seen."""
+    if kernel not in _CACHED_KERNELS:
+        _CACHED_KERNELS[kernel] = functools.partial(_kernel_call, kernel)
+    return _CACHED_KERNELS[kernel]
+
+
+def _kernel_call(kernel, *args):
+    return cached_kernel_call(kernel, args)
 
 
 def _load_or_export(fn, treedef, avals, path: Path):

@@ -236,3 +236,44 @@ def test_soundness_against_dense_sampling_of_the_hulls(model, dataset, larc):
             checked += 1
             assert measure(traj, scene.lo[0], scene.hi[0], 2000)[0] > MARGIN, traj.id
     assert checked >= 6 and near >= 5
+
+
+def test_two_rounds_decide_as_the_full_search(dataset, model, larc, monkeypatch):
+    """Step 4's first round (the first GJK axis alone) changes no decision: with the full search
+    on every triple (the first round replaced by it) the same intervals are evaluated and every
+    leaf has the same stage; a leaf the first round decided records a bound no larger than the
+    full search's, and still above its guard."""
+    import larc_jax.engine.batch as batch_module
+
+    robot, capsules, _ = model
+    monkeypatch.setattr(batch_module, "_hull_first_axis", batch_module._hull_pairs)
+    full = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
+    assert (full.certified == larc.certified).all()
+    assert (full.frontier == larc.frontier).all()
+    assert (full.leaves.stage == larc.leaves.stage).all()
+    hull = larc.leaves.stage == 2
+    excess, excess_full = (r.leaves.clearance_m - r.leaves.guard_m for r in (larc, full))
+    assert (excess[hull] > 0).all()
+    assert (excess[hull] <= excess_full[hull] + 1e-12).all()
+    assert (excess[hull] < excess_full[hull] - 1e-6).any()  # some leaves were decided by the first axis
+    capsule = larc.leaves.stage == 1
+    assert (larc.leaves.clearance_m[capsule] == full.leaves.clearance_m[capsule]).all()
+
+
+def test_two_rounds_rule():
+    """Named cases of :func:`two_rounds`: a first value above its guard is kept; at the guard, below
+    it or NaN, the full search's value replaces it (and only those are asked for)."""
+    from larc_jax.leaf.cascade import two_rounds
+
+    first = np.array([0.5, 0.1, 0.2, np.nan, -1.0])
+    guard = np.array([0.1, 0.1, 0.3, 0.0, 0.0])
+    asked = []
+
+    def full(redo):
+        asked.append(list(redo))
+        return np.array([7.0, 8.0, 9.0, 10.0])[: len(redo)]
+
+    g = two_rounds(first, guard, full)
+    assert asked == [[1, 2, 3, 4]]
+    np.testing.assert_array_equal(g, [0.5, 7.0, 8.0, 9.0, 10.0])
+    assert len(two_rounds(np.array([1.0]), np.array([0.0]), lambda redo: 1 / 0)) == 1  # never asked

@@ -240,3 +240,35 @@ def test_float32_is_conservative(dataset, robot, capsules, larc_result):
 def test_bad_arguments(robot, capsules, dataset, kwargs, msg):
     with pytest.raises(LarcInputError, match=msg):
         certify(dataset[0][:1], Scene.empty(), robot, capsules, **kwargs)
+
+
+def test_speculated_levels_change_nothing(dataset, robot, capsules, monkeypatch):
+    """A small frontier evaluated a few levels ahead in one call (certify.SPECULATE_INTERVALS) gives
+    the leaves, decisions and per-depth evaluation counts of one call per level, bit for bit: one
+    trajectory alone (speculated from the root) and six together."""
+    import dataclasses
+
+    import larc_jax.engine.certify as certify_module
+
+    trajs, scenes = dataset
+    cases = [(trajs[:1], scenes[:1]), (trajs[3:4], scenes[3:4]), (trajs[:6], scenes[:6])]
+    ahead = [certify(t, s, robot, capsules, margin=MARGIN, enclosure="capsules") for t, s in cases]
+    monkeypatch.setattr(certify_module, "SPECULATE_INTERVALS", 0)
+    for (t, s), got in zip(cases, ahead):
+        want = certify(t, s, robot, capsules, margin=MARGIN, enclosure="capsules")
+        assert (got.frontier == want.frontier).all() and (got.certified == want.certified).all()
+        for f in dataclasses.fields(want.leaves):
+            np.testing.assert_array_equal(getattr(got.leaves, f.name), getattr(want.leaves, f.name), err_msg=f.name)
+
+
+def test_speculated_levels_bound():
+    """How many levels a frontier is evaluated ahead: within SPECULATE_INTERVALS intervals, never
+    past the maximum depth."""
+    from larc_jax.engine.certify import SPECULATE_INTERVALS, speculated_levels
+
+    assert SPECULATE_INTERVALS == 64
+    assert speculated_levels(1, 0, 9) == 5  # 63 intervals: depths 0-5
+    assert speculated_levels(1, 7, 9) == 2  # not past depth 9
+    assert speculated_levels(20, 3, 9) == 1  # 60 intervals
+    assert speculated_levels(22, 3, 9) == 0  # 66 > 64
+    assert speculated_levels(1, 9, 9) == 0

@@ -17,6 +17,7 @@ from scipy.interpolate import CubicHermiteSpline
 from larc_jax.errors import LarcInputError
 from larc_jax.model.hermite import (
     HermiteSpline,
+    accel_max,
     batch_from_waypoints,
     evaluate,
     evaluate_np,
@@ -173,6 +174,37 @@ def test_speed_table_definition():
                 for k in range(K):
                     want = seg[k:min(k + 2**lv, K)].max(axis=0)
                     np.testing.assert_allclose(table[lv, k], want, rtol=0, atol=RTOL * scale)
+
+
+def test_tables_are_range_maxima_of_their_first_level():
+    """Every level of both sparse tables is the maximum of level 0 over ``[k, min(k + 2**l, K))``
+    exactly (a max of stored numbers: no rounding), for K a power of two and not, 1..40 segments
+    (the levels are built from shifted slices, the last segment repeated)."""
+    rng = np.random.default_rng(11)
+    with jax.enable_x64(True):
+        for K in (1, 2, 3, 4, 7, 8, 9, 16, 31, 40):
+            t, q, v = random_traj(rng, K, 2)
+            sp = jax.jit(HermiteSpline.from_waypoints)(t, q, v)
+            for table in (np.asarray(sp.speed_table), np.asarray(sp.accel_table)):
+                for lv in range(table.shape[0]):
+                    for k in range(K):
+                        np.testing.assert_array_equal(table[lv, k], table[0, k:min(k + 2**lv, K)].max(axis=0))
+
+
+def test_spline_without_acceleration_table():
+    """``from_waypoints(..., accel=False)`` builds the same speed table and no acceleration table;
+    ``accel_max`` on it is refused with a message, not an index error from inside JAX."""
+    rng = np.random.default_rng(12)
+    t, q, v = random_traj(rng, 6, 3)
+    with jax.enable_x64(True):
+        full = jax.jit(HermiteSpline.from_waypoints)(t, q, v)  # both compiled: the same arithmetic
+        lean = jax.jit(lambda *x: HermiteSpline.from_waypoints(*x, accel=False))(t, q, v)
+        assert lean.accel_table is None
+        np.testing.assert_array_equal(np.asarray(lean.speed_table), np.asarray(full.speed_table))
+        np.testing.assert_array_equal(np.asarray(speed_max(lean, t[1], t[4])), np.asarray(speed_max(full, t[1], t[4])))
+        assert np.all(np.asarray(accel_max(full, t[1], t[4])) >= 0)
+        with pytest.raises(ValueError, match="acceleration table"):
+            accel_max(lean, t[1], t[4])
 
 
 # ------------------------------------------------------------------------------------------

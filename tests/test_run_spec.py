@@ -180,7 +180,12 @@ def test_explain_draws_the_hull_part_or_self_pair_that_decided_the_leaf(robot, c
     assert part is not None and ex.pair is None and ex.stage == "hull"
     assert part.lower_bound_m - part.reach_m == pytest.approx(ex.decided_clearance_m, abs=1e-12)
     d = float(np.linalg.norm(part.closest[0] - part.closest[1]))
-    assert part.lower_bound_m <= d <= part.lower_bound_m + 1e-4  # the proven bound is below and near
+    # The recorded bound is below; the full GJK search (which the first axis may have spared) is below and near.
+    from larc_jax.obstacles import scene_obstacles
+
+    full = scene_obstacles(scene).take(ex.box).polytope_lower_bound_np(part.vertices_m, part.vertices_m.mean(0),
+                                                                       np.eye(3), np.zeros(3))
+    assert part.lower_bound_m <= full + 1e-9 and full <= d <= full + 1e-4
     fig = figure(ex, robot, capsules, traj, scene, result)
     grow = part.reach_m + ex.guard_m
     for ax, (i, j) in zip(fig.axes, views):

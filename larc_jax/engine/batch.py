@@ -28,9 +28,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..leaf.cascade import Links, PairDetails, combine, hull_pair_clearance, interval_pairs, select_pairs
+from ..leaf.cascade import Links, PairDetails, combine, hull_pair_clearance, interval_pairs, select_pairs, two_rounds
 from ..leaf.clearance import BROAD_PHASE_K
-from ..compilation import cached_kernel_call
+from ..compilation import cached_kernel, tracked_call
 from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel
 from ..model.hermite import HermiteSpline, SplineRow, pad_waypoints
@@ -38,6 +38,7 @@ from ..leaf.interval import RoundingBounds, dyadic_ends, evaluate_interval, reba
 from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
 from ..lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
 from ..obstacles import ObstacleSet, stack_scenes
+from ..obstacles.polytope import GJK_ITERATIONS
 from ..leaf.placement import place
 from ..model.robot import Robot
 from ..model.scene import Scene
@@ -60,10 +61,12 @@ datasets run batch after batch): bounds the padded spline and bound arrays, so m
 grow with the dataset."""
 
 
-CASCADE_BUCKETS = (64, 1024, 4096)
-"""Sizes of the cascade's second-stage calls (larc_jax.leaf.cascade): coarser than :data:`BUCKETS`,
-because those kernels take seconds to compile and their calls are fewer; a small call padded
-to 64 costs a few ms."""
+CASCADE_BUCKETS = (64, 256, 1024)
+"""Sizes of the cascade's second-stage calls (larc_jax.leaf.cascade): fewer than :data:`BUCKETS`,
+because those kernels take seconds to compile; a small call padded to 64 costs a few ms. Larger
+counts run in 1024-chunks: a GJK pair costs ~30 us on a CPU core, so padding a remainder to 4096
+(the former largest size) cost more than the extra calls (on Stage B, 57 % of the padded pairs
+were real)."""
 
 
 PAIR_BYTES = 512
@@ -78,30 +81,6 @@ def size_class(n: int, minimum: int) -> int:
     trajectories, scenes) are rounded up to these so a process compiles a few shapes, not one
     per distinct size (each compiled CPU executable also holds ~100 memory mappings)."""
     return 1 << (max(int(n), int(minimum)) - 1).bit_length()
-
-
-_SEEN: set = set()
-"""Call signatures (function, shapes, dtypes, static structure) seen by :func:`_call` with an
-``on_compile`` listener: a call with a new one compiles first (or loads from the persistent
-cache). Tracked only when someone listens, so the default path pays nothing."""
-
-
-def _call(fn, args, on_compile: Callable[[bool], None] | None):
-    """``fn(*args)``, telling ``on_compile`` (True, then False) when the call compiles."""
-    if on_compile is None:
-        return fn(*args)
-    leaves = jax.tree.leaves(args)
-    sig = (fn, jax.tree.structure(args), tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
-           jax.config.jax_enable_x64)
-    new = sig not in _SEEN
-    if new:
-        on_compile(True)
-    try:
-        return fn(*args)
-    finally:
-        _SEEN.add(sig)
-        if new:
-            on_compile(False)
 
 
 def _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, k):
@@ -130,22 +109,6 @@ def _evaluate_intervals_broad(robot, capsules, splines, obstacles, bounds, traj,
     return _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, BROAD_PHASE_K)
 
 
-_CACHED_CALLS: dict = {}
-
-
-def _cached(kernel):
-    """``kernel`` through its export kept in the compilation cache when that is on
-    (:func:`larc_jax.compilation.cached_kernel_call`; one device). One callable per kernel, so
-    that :func:`_call` recognises a shape it has seen."""
-    if kernel not in _CACHED_CALLS:
-        _CACHED_CALLS[kernel] = functools.partial(_cached_call, kernel)
-    return _CACHED_CALLS[kernel]
-
-
-def _cached_call(kernel, *args):
-    return cached_kernel_call(kernel, args)
-
-
 @jax.jit
 def _interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, traj, scene, a, b, margin):
     """Step 2 of the cascade (larc_jax.leaf.cascade) on F intervals, as ``_evaluate_intervals``: the
@@ -160,11 +123,21 @@ def _interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, traj, sc
     return jax.vmap(one)(traj, scene, a, b)
 
 
-@jax.jit
-def _hull_pairs(hulls, part, T_part, items, motion_b, margin):
-    """Step 4 of the cascade on T (part, obstacle) pairs (``items``: one obstacle per pair)."""
-    return jax.vmap(hull_pair_clearance, in_axes=(None, 0, 0, 0, 0, None))(
-        hulls, part, T_part, items, motion_b, margin)
+def _hull_pairs_kernel(iterations: int):
+    """Step 4 of the cascade on T (part, obstacle) pairs (``items``: one obstacle per pair) with
+    ``iterations`` GJK steps: one jitted function per round, each with its own name (the
+    compilation cache keys kernels by name)."""
+
+    def kernel(hulls, part, T_part, items, motion_b, margin):
+        one = functools.partial(hull_pair_clearance, iterations=iterations)
+        return jax.vmap(one, in_axes=(None, 0, 0, 0, 0, None))(hulls, part, T_part, items, motion_b, margin)
+
+    kernel.__name__ = kernel.__qualname__ = f"_hull_pairs_{iterations}"
+    return jax.jit(kernel)
+
+
+_hull_first_axis = _hull_pairs_kernel(0)
+_hull_pairs = _hull_pairs_kernel(GJK_ITERATIONS)
 
 
 @jax.jit
@@ -212,6 +185,9 @@ def _swept_parts(hulls, part, T_mid, R_ends, t_ends, items, motion_b, swept_e, m
 
 
 _build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
+_build_speed_splines = jax.jit(jax.vmap(functools.partial(HermiteSpline.from_waypoints, accel=False)))
+"""Splines without the acceleration table, which only the swept stage reads: building it cost
+as much as the speed table (on Stage B the two took 40 % of a warm fixed-fine run)."""
 
 
 def _geometry(robot: Robot, capsules: CapsuleModel, dtype):
@@ -274,7 +250,7 @@ class Batch:
         sharding = NamedSharding(Mesh(np.array(self.devices), ("interval",)), PartitionSpec("interval"))
         return tuple(jax.device_put(x, sharding) for x in arrays)
 
-    @property
+    @functools.cached_property
     def max_chunk(self) -> int:
         """Intervals per kernel call at most: the all-pairs interval kernel holds about
         :data:`PAIR_BYTES` per capsule-obstacle pair, so a call may not exceed :data:`CALL_BYTES`
@@ -353,10 +329,10 @@ class Batch:
         if self.self_pairs is not None:
             sp = self.self_pairs
             check = (sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64), self.self_skip)
-            call = _self_intervals if len(self.devices) > 1 else _cached(_self_intervals)
+            call = _self_intervals if len(self.devices) > 1 else cached_kernel(_self_intervals)
             gs, gds, c1, c2 = self._bucketed(
-                lambda t, x, y: _call(call, (self.robot, self.capsules, self.splines, self.bounds, t, x, y, check),
-                                      on_compile), [traj, ar, br])
+                lambda t, x, y: tracked_call(call, (self.robot, self.capsules, self.splines, self.bounds, t, x, y,
+                                                    check), on_compile), [traj, ar, br])
             self_test = self_record(gs, gds, c1.astype(np.int64), c2.astype(np.int64))
         return a, b, box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.CAPSULE), self_test
 
@@ -366,9 +342,9 @@ class Batch:
         return self.capsules.n_capsules * self.obstacles.n_items > 2 * BROAD_PHASE_K
 
     def _kernel(self, kernel, on_compile):
-        call = kernel if len(self.devices) > 1 else _cached(kernel)
-        return lambda t, sc, x, y: _call(call, (self.robot, self.capsules, self.splines, self.obstacles, self.bounds, t,
-                                                sc, x, y, self.margin), on_compile)
+        call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
+        return lambda t, sc, x, y: tracked_call(call, (self.robot, self.capsules, self.splines, self.obstacles,
+                                                       self.bounds, t, sc, x, y, self.margin), on_compile)
 
     def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                          on_compile: Callable[[bool], None] | None = None):
@@ -390,11 +366,11 @@ class Batch:
     def _swept_stage(self, tr, a, b, on_compile) -> LeafRecord:
         """The swept stage (:mod:`larc_jax.leaf.swept`) on the intervals ``(tr, a, b)``."""
         ar, br = self._rebased(tr, a, b)
-        call = _swept_intervals if len(self.devices) > 1 else _cached(_swept_intervals)
-        parts_call = _swept_parts if len(self.devices) > 1 else _cached(_swept_parts)
-        caps_call = _swept_capsules if len(self.devices) > 1 else _cached(_swept_capsules)
+        call = _swept_intervals if len(self.devices) > 1 else cached_kernel(_swept_intervals)
+        parts_call = _swept_parts if len(self.devices) > 1 else cached_kernel(_swept_parts)
+        caps_call = _swept_capsules if len(self.devices) > 1 else cached_kernel(_swept_capsules)
         d = SweptPlacement(*self._bucketed(
-            lambda t, sc, x, y: _call(call, (self.robot, self.capsules, self.hulls, self.swept, self.splines,
+            lambda t, sc, x, y: tracked_call(call, (self.robot, self.capsules, self.hulls, self.swept, self.splines,
                                              self.obstacles, self.bounds, t, sc, x, y, self.margin), on_compile),
             [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
         links = swept_links(self.capsules, None if self.hulls is None else Links.of(self.capsules, self.hulls))
@@ -404,16 +380,17 @@ class Batch:
             i, c, k = triples.T
             leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one item per triple
             return self._bucketed(
-                lambda cc, R, t, e, *it: _call(caps_call, (self.capsules, cc, R, t, jax.tree.unflatten(tree, it), e,
-                                                           self.margin), on_compile),
+                lambda cc, R, t, e, *it: tracked_call(caps_call, (self.capsules, cc, R, t, jax.tree.unflatten(tree, it),
+                                                                  e, self.margin), on_compile),
                 [c, d.R_capsule[i, c], d.t_capsule[i, c], d.e_capsule[i, c], *leaves], buckets=CASCADE_BUCKETS)
 
         def clear_parts(triples):
             i, p, k = triples.T
             leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one item per triple
             g = self._bucketed(
-                lambda pp, Tm, R, t, mb, e, *it: _call(parts_call, (self.hulls, pp, Tm, R, t, jax.tree.unflatten(tree, it),
-                                                                    mb, e, self.margin), on_compile),
+                lambda pp, Tm, R, t, mb, e, *it: tracked_call(
+                    parts_call, (self.hulls, pp, Tm, R, t, jax.tree.unflatten(tree, it), mb, e, self.margin),
+                    on_compile),
                 [p, d.T_mid[i, p], d.R_ends[i, p], d.t_ends[i, p], d.motion_b[i, p], d.swept_e[i, p], *leaves],
                 buckets=CASCADE_BUCKETS)
             return g, np.asarray(self.bounds.hull_guard_m)[tr][i, p]
@@ -422,13 +399,23 @@ class Batch:
                                              clear_parts)
         return box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.SWEPT)
 
+    def _hull_round(self, kernel, d: PairDetails, tr, triples, on_compile) -> np.ndarray:
+        """One round of step 4 (``kernel``: :data:`_hull_first_axis` or :data:`_hull_pairs`) on the
+        ``(interval, part, obstacle)`` triples of the intervals ``tr``."""
+        call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
+        i, p, k = triples.T
+        leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one obstacle per triple
+        return self._bucketed(
+            lambda pp, T, mb, *it: tracked_call(call, (self.hulls, pp, T, jax.tree.unflatten(tree, it), mb,
+                                                       self.margin), on_compile),
+            [p, d.T_part[i, p], d.motion_b[i, p], *leaves], buckets=CASCADE_BUCKETS)
+
     def _hull_stage(self, tr, a, b, on_compile) -> LeafRecord:
         """The hull stage (steps 2-5 of larc_jax.leaf.cascade) on the intervals ``(tr, a, b)``."""
         ar, br = self._rebased(tr, a, b)
-        pairs_call = _interval_pairs if len(self.devices) > 1 else _cached(_interval_pairs)
-        hull_call = _hull_pairs if len(self.devices) > 1 else _cached(_hull_pairs)
+        pairs_call = _interval_pairs if len(self.devices) > 1 else cached_kernel(_interval_pairs)
         d = PairDetails(*self._bucketed(
-            lambda t, sc, x, y: _call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
+            lambda t, sc, x, y: tracked_call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
                                                    self.obstacles, self.bounds, t, sc, x, y, self.margin),
                                       on_compile),
             [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
@@ -439,14 +426,10 @@ class Batch:
         g_hull = guard_hull = np.zeros(0)
         if len(triples):
             i, p, k = triples.T
-            sc = self.scene_of[tr[i]]
-            items = self.obstacles.take((sc, k))  # one obstacle per triple
-            leaves, tree = jax.tree.flatten(items)
-            g_hull = self._bucketed(
-                lambda pp, T, mb, *it: _call(hull_call, (self.hulls, pp, T, jax.tree.unflatten(tree, it), mb,
-                                                         self.margin), on_compile),
-                [p, d.T_part[i, p], d.motion_b[i, p], *leaves], buckets=CASCADE_BUCKETS)
             guard_hull = G_p[i, p]
+            first = self._hull_round(_hull_first_axis, d, tr, triples, on_compile)
+            g_hull = two_rounds(first, guard_hull,
+                                lambda redo: self._hull_round(_hull_pairs, d, tr, triples[redo], on_compile))
         g, guard, cap, box, _ = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
         return box_record(g, guard, cap, box, Stage.HULL)
 
@@ -477,8 +460,9 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
     obstacles = stack_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)), dtype)
     with jax.enable_x64(True):
-        splines = _call(_build_splines, tuple(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
-                        on_compile)
+        build = _build_splines if swept is not None else _build_speed_splines  # the swept stage reads accelerations
+        splines = tracked_call(build, tuple(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
+                               on_compile)
     robot_g, capsules_g = _geometry(robot, capsules, dtype)
     return Batch(
         robot=robot_g, capsules=capsules_g, splines=splines, bounds=stacked,

@@ -38,7 +38,7 @@ from ..errors import LarcInputError
 from ..io import short_repr
 from ..leaf.record import LeafRecord
 from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
-from ..leaf.interval import geometry_dtype, trajectory_rounding
+from ..leaf.interval import geometry_dtype, trajectory_roundings
 from ..obstacles import scene_obstacles
 from .results import DatasetResult, LeafTable
 from ..model.robot import Robot
@@ -53,6 +53,8 @@ __all__ = [
     "certify",
     "run_spec",
     "SPEC_KEYWORDS",
+    "SPECULATE_INTERVALS",
+    "speculated_levels",
     "DEFAULT_MARGIN_M",
     "DEFAULT_MAX_DEPTH",
     "DEFAULT_COARSE_DEPTH",
@@ -119,23 +121,61 @@ def _leaf_table(names: _Names, traj, depth, index, a, b, rec: LeafRecord) -> Lea
     )
 
 
+SPECULATE_INTERVALS = 64
+"""A frontier of fewer intervals is evaluated together with its descendants down as many levels
+as fit in this many intervals, in one call (:func:`_larc_batched`): a call costs ~0.5 ms on the
+host whatever its size (dispatch, padding to a bucket of at least 4, the leaf bookkeeping),
+about 50 intervals' evaluation, so a small frontier (one trajectory certified alone: 1, 2,
+4, ... intervals at the first depths) is cheaper evaluated ahead than a level at a time."""
+
+
+def speculated_levels(frontier: int, depth: int, max_depth: int) -> int:
+    """Levels below ``depth`` evaluated ahead for a frontier of ``frontier`` intervals: the largest
+    ``s`` with ``frontier * (2**(s+1) - 1) <= SPECULATE_INTERVALS`` and ``depth + s <= max_depth``."""
+    s = 0
+    while depth + s < max_depth and frontier * (2 ** (s + 2) - 1) <= SPECULATE_INTERVALS:
+        s += 1
+    return s
+
+
 def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress, on_compile=None):
+    """The level-by-level frontier. A small frontier is evaluated with its descendants a few
+    levels down in one call (:data:`SPECULATE_INTERVALS`); the levels are then walked on the
+    host exactly as one call per level would: an interval's test does not depend on what else
+    is evaluated with it, so the leaves, decisions and counted evaluations (``frontier``: only
+    the intervals the frontier reaches) are those of one call per level."""
     traj = np.arange(n_traj, dtype=np.int64)
     index = np.zeros(n_traj, np.int64)
     frontier = np.zeros((n_traj, max_depth + 1), np.int64)
     parts = []
-    for d in range(max_depth + 1):
-        if len(traj) == 0:
-            break
-        depth = np.full(len(traj), d)
-        frontier[:, d] = np.bincount(traj, minlength=n_traj)
-        a, b, rec = batch.evaluate_cascade(traj, depth, index, progress, on_compile)
-        passed = rec.stage > 0  # g > guard; NaN never passes (larc_jax.leaf.record)
-        final = passed | (d == max_depth)
-        parts.append(_leaf_table(names, traj[final], depth[final], index[final], a[final], b[final], rec.take(final)))
-        open_ = ~final
-        traj = np.repeat(traj[open_], 2)
-        index = np.stack([2 * index[open_], 2 * index[open_] + 1], axis=1).reshape(-1)
+    d = 0
+    while d <= max_depth and len(traj):
+        s = speculated_levels(len(traj), d, max_depth)
+        # Every descendant of the frontier down to depth d + s, level by level: node m of level j
+        # below frontier interval i is at offset base[j] + i * 2**j + m.
+        f = len(traj)
+        base = np.concatenate([[0], np.cumsum([f << j for j in range(s + 1)])])
+        all_traj = np.concatenate([np.repeat(traj, 1 << j) for j in range(s + 1)])
+        all_index = np.concatenate([((index << j)[:, None] + np.arange(1 << j)).reshape(-1) for j in range(s + 1)])
+        all_depth = np.concatenate([np.full(f << j, d + j) for j in range(s + 1)])
+        a_all, b_all, rec_all = batch.evaluate_cascade(all_traj, all_depth, all_index, progress, on_compile)
+        pos, sub = np.arange(f), np.zeros(f, np.int64)  # open intervals: frontier position, node below it
+        for j in range(s + 1):
+            rows = base[j] + (pos << j) + sub
+            t, dj, ix = all_traj[rows], d + j, all_index[rows]
+            frontier[:, dj] = np.bincount(t, minlength=n_traj)
+            rec = rec_all.take(rows)
+            passed = rec.stage > 0  # g > guard; NaN never passes (larc_jax.leaf.record)
+            final = passed | (dj == max_depth)
+            parts.append(_leaf_table(names, t[final], np.full(int(final.sum()), dj), ix[final], a_all[rows][final],
+                                     b_all[rows][final], rec.take(final)))
+            open_ = ~final
+            pos = np.repeat(pos[open_], 2)
+            sub = np.stack([2 * sub[open_], 2 * sub[open_] + 1], axis=1).reshape(-1)
+        last = base[s] + (pos << s) + (sub >> 1)  # the open intervals of depth d + s (each twice)
+        traj = all_traj[last]
+        index = 2 * all_index[last] + (sub & 1)
+        d += s + 1
     return frontier, LeafTable.concatenate(parts)
 
 
@@ -359,7 +399,7 @@ def certify(
     planned_capsules, capsules, hulls = capsules, enc.capsules, enc.hulls
     start = time.perf_counter()
     names = _Names(scenes)
-    bounds = [trajectory_rounding(t, robot, capsules, dtype, hulls) for t in trajectories]
+    bounds = trajectory_roundings(trajectories, robot, capsules, dtype, hulls)
     with CompileClock() as clock:
         if method == Method.REFERENCE:
             frontier, leaves = _reference(trajectories, scenes, names, robot, enc, margin, max_depth, bounds,

@@ -128,6 +128,7 @@ __all__ = [
     "interval_clearance",
     "interval_clearance_np",
     "trajectory_rounding",
+    "trajectory_roundings",
     "time_offset",
     "rebase_ends",
     "dyadic_ends",
@@ -256,14 +257,19 @@ def _chain_terms(robot: Robot, link_index, end_norms):
     return np.array(lengths, np.float64), np.array(fixed), prismatic
 
 
-def _guards(robot: Robot, link_index, end_norms, motion_a, E, Q, ug: float) -> np.ndarray:
-    """``G_e`` of the module docstring for enclosures on ``link_index`` (per-joint position
-    error ``E``, curve bound ``Q``, geometry roundoff ``ug``)."""
+def _guard_terms(robot: Robot, link_index, end_norms, motion_a):
+    """What ``G_e`` needs of the model (the same for every trajectory): ``(a, lengths, fixed,
+    prismatic)``, :func:`_chain_terms` with the motion constants."""
+    return (np.asarray(motion_a, np.float64).reshape(len(link_index), -1),) + _chain_terms(robot, link_index, end_norms)
+
+
+def _guards(terms, E, Q, ug: float) -> np.ndarray:
+    """``G_e`` of the module docstring for enclosures with :func:`_guard_terms` ``terms`` (per-joint
+    position error ``E``, curve bound ``Q``, geometry roundoff ``ug``)."""
     u = _U64
-    a = np.asarray(motion_a, np.float64).reshape(len(link_index), -1)
+    a, lengths, fixed, prismatic = terms
     with np.errstate(over="ignore", invalid="ignore"):
         placed = np.where(a > 0, a * E, 0.0).sum(axis=1)  # sum_j a_lj E_j (a_lj = 0: no effect)
-        lengths, fixed, prismatic = _chain_terms(robot, link_index, end_norms)
         reach = fixed + np.array([sum(float(Q[j]) for j in js) for js in prismatic])
         return (1 + 8 * u) * (placed + (K_FK * (lengths + 1) + 2 * K_DIST_ABS) * ug * reach)
 
@@ -272,6 +278,24 @@ def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.flo
     """The bounds of the module docstring's budget for one validated trajectory (NumPy float64):
     its rebase offset, rebased horizon, tau, the speed slack and the guard of every capsule (and
     of every part of ``hulls``, a :class:`~larc_jax.enclosure.hull.HullModel`, if given)."""
+    return trajectory_roundings([traj], robot, capsules, dtype, hulls)[0]
+
+
+def trajectory_roundings(trajs, robot: Robot, capsules: CapsuleModel, dtype=np.float64,
+                         hulls=None) -> list[RoundingBounds]:
+    """:func:`trajectory_rounding` of every trajectory of ``trajs``, the model's terms computed once."""
+    ends = np.maximum(np.linalg.norm(np.asarray(capsules.p_link_a, np.float64), axis=1),
+                      np.linalg.norm(np.asarray(capsules.p_link_b, np.float64), axis=1))
+    capsule_terms = _guard_terms(robot, capsules.link_index, ends, capsules.motion_a)
+    hull_terms = None
+    if hulls is not None:
+        v_max = np.linalg.norm(np.asarray(hulls.vertices, np.float64), axis=-1).max(axis=1)
+        hull_terms = _guard_terms(robot, hulls.link_index, v_max, hulls.motion_a)
+    return [_rounding(traj, capsule_terms, hull_terms, dtype) for traj in trajs]
+
+
+def _rounding(traj, capsule_terms, hull_terms, dtype) -> RoundingBounds:
+    """:func:`trajectory_rounding` of one trajectory, given the model's :func:`_guard_terms`."""
     ug = float(np.finfo(geometry_dtype(dtype)).eps) / 2
     u = _U64
     t = np.asarray(traj.t, np.float64)
@@ -287,13 +311,8 @@ def trajectory_rounding(traj, robot: Robot, capsules: CapsuleModel, dtype=np.flo
         V = (v[:-1] + v[1:] + 1.5 * d).max(axis=0)  # P2
         A = ((4 * v[:-1] + 4 * v[1:] + 6 * d) / H).max(axis=0)  # P2'
         E = K_POS * u * Q + (2.0 * ug * Q if ug > u else 0.0)
-    ends = np.maximum(np.linalg.norm(np.asarray(capsules.p_link_a, np.float64), axis=1),
-                      np.linalg.norm(np.asarray(capsules.p_link_b, np.float64), axis=1))
-    guard = _guards(robot, capsules.link_index, ends, capsules.motion_a, E, Q, ug)
-    hull_guard = np.zeros(0)
-    if hulls is not None:
-        v_max = np.linalg.norm(np.asarray(hulls.vertices, np.float64), axis=-1).max(axis=1)
-        hull_guard = _guards(robot, hulls.link_index, v_max, hulls.motion_a, E, Q, ug)
+    guard = _guards(capsule_terms, E, Q, ug)
+    hull_guard = np.zeros(0) if hull_terms is None else _guards(hull_terms, E, Q, ug)
     return RoundingBounds(
         offset_s=np.float64(offset), t_start=np.float64(tr[0]), t_end=np.float64(tr[-1]),
         tau_s=np.float64(K_TIME * u * t_mag), omega_slack=K_SPEED * u * V, accel_slack=K_SPEED * u * A,

@@ -175,9 +175,11 @@ def _build_table(t_knots, q_knots, qd_knots, segment_max):
     )  # (K, n): exact maximum over the whole segment k
     levels = [level]
     for lv in range(1, L):
-        half = 1 << (lv - 1)
-        shifted_idx = jnp.minimum(jnp.arange(K) + half, K - 1)  # clamped at the end
-        level = jnp.maximum(level, level[shifted_idx])
+        half = min(1 << (lv - 1), K - 1)
+        # level[min(k + half, K - 1)]: a shifted slice, the last row repeated (a slice, not a
+        # gather: under vmap a gather of the whole table cost ~10x the arithmetic on a CPU).
+        shifted = jnp.concatenate([level[half:], jnp.broadcast_to(level[K - 1:], (half,) + level.shape[1:])])
+        level = jnp.maximum(level, shifted)
         levels.append(level)
     return jnp.stack(levels, axis=0)
 
@@ -203,8 +205,9 @@ class HermiteSpline:
     """(L, K, n) sparse table, rad/s or m/s: ``speed_table[l, k, j]`` is the exact max of
     ``|qdot_j|`` over segments ``k .. min(k + 2**l - 1, K - 1)`` (level 0: segment ``k``
     alone); ``L = max(1, ceil(log2 K) + 1)``."""
-    accel_table: jax.Array
-    """(L, K, n) the same table of the maxima of ``|qddot_j|`` (eq. (**)), rad/s^2 or m/s^2."""
+    accel_table: jax.Array | None
+    """(L, K, n) the same table of the maxima of ``|qddot_j|`` (eq. (**)), rad/s^2 or m/s^2; None
+    when built without it (``from_waypoints(..., accel=False)``: only the swept stage reads it)."""
 
     @property
     def num_segments(self) -> int:
@@ -232,13 +235,14 @@ class HermiteSpline:
         return self.q_knots.shape[-1]
 
     @classmethod
-    def from_waypoints(cls, t, q, qd) -> "HermiteSpline":
+    def from_waypoints(cls, t, q, qd, accel: bool = True) -> "HermiteSpline":
         """Build a spline from waypoint times ``(K+1,)``, positions and velocities ``(K+1, n)``.
 
         Accepts NumPy or JAX arrays; the common floating dtype of the inputs is used (float32
         unless x64 is enabled and an input is float64). Shapes are checked; values are not
         (times must be strictly increasing — checked by the trajectory loader). Works under
-        ``jax.jit`` and ``jax.vmap`` (the table is built with ``jnp``).
+        ``jax.jit`` and ``jax.vmap`` (the table is built with ``jnp``). ``accel`` (static): build
+        :attr:`accel_table` too (:func:`accel_max` needs it; the speed queries do not).
         """
         t = jnp.asarray(t)
         q = jnp.asarray(q)
@@ -254,7 +258,7 @@ class HermiteSpline:
         q = q.astype(dtype)
         qd = qd.astype(dtype)
         return cls(t_knots=t, q_knots=q, qd_knots=qd, speed_table=_build_table(t, q, qd, segment_speed_max),
-                   accel_table=_build_table(t, q, qd, segment_accel_max))
+                   accel_table=_build_table(t, q, qd, segment_accel_max) if accel else None)
 
 
 @pytree_dataclass
@@ -409,7 +413,12 @@ def speed_max(spline: HermiteSpline, a, b):
 def accel_max(spline: HermiteSpline, a, b):
     """Exact ``max_{t in [a, b]} |qddot_j(t)|`` for every joint ``j``: ``(n,)``, with the
     preconditions and the range query of :func:`speed_max` (eq. (**) of the module docstring is
-    linear on each segment, so each touched segment's maximum is at its clipped ends)."""
+    linear on each segment, so each touched segment's maximum is at its clipped ends). The
+    spline must hold its :attr:`~HermiteSpline.accel_table`."""
+    batch = spline.batch if isinstance(spline, SplineRow) else spline
+    if batch.accel_table is None:
+        raise ValueError("hermite.accel_max: the spline was built without its acceleration table "
+                         "(HermiteSpline.from_waypoints(..., accel=True))")
     return _range_max(spline, a, b, segment_accel_max, spline.accel_table_at)
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from .geometry import (point_box_distance, point_box_distance_np, segment_box_distance, segment_box_distance_np,
                         segment_box_lower_bound, segment_box_lower_bound_np)
 from ..lazy_jax import pytree_dataclass
-from .polytope import polytope_box_lower_bound, polytope_box_lower_bound_np
+from .polytope import GJK_ITERATIONS, polytope_box_lower_bound, polytope_box_lower_bound_np
 from ..model.scene import Scene, pad_scenes
 from .protocol import ObstacleSet
 
@@ -81,8 +81,8 @@ class AlignedBoxes(ObstacleSet):
     def point_distance_np(self, p):
         return point_box_distance_np(p, self.lo, self.hi)
 
-    def polytope_lower_bound(self, vertices, part, centre, R, t):
-        return polytope_box_lower_bound(vertices, part, centre, R, t, self.lo, self.hi)
+    def polytope_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
+        return polytope_box_lower_bound(vertices, part, centre, R, t, self.lo, self.hi, iterations)
 
-    def polytope_lower_bound_np(self, V, centre, R, t) -> float:
-        return polytope_box_lower_bound_np(V, centre, R, t, self.lo, self.hi)
+    def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
+        return polytope_box_lower_bound_np(V, centre, R, t, self.lo, self.hi, iterations)

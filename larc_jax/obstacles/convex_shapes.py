@@ -65,7 +65,7 @@ from ..model.shapes import local_geometry
 from .aligned_boxes import boxes_outward
 from .geometry import (point_box_distance, point_box_distance_np, segment_box_distance, segment_box_distance_np,
                        segment_box_lower_bound, segment_box_lower_bound_np)
-from .polytope import (polytope_box_lower_bound, polytope_box_lower_bound_np, polytope_hull_lower_bound,
+from .polytope import (GJK_ITERATIONS, polytope_box_lower_bound, polytope_box_lower_bound_np, polytope_hull_lower_bound,
                        polytope_hull_lower_bound_np)
 from .protocol import ObstacleSet
 
@@ -252,7 +252,7 @@ class ConvexShapes(ObstacleSet):
             d = jnp.where(self.polytope, near, d)
         return d
 
-    def polytope_lower_bound(self, vertices, part, centre, R, t):
+    def polytope_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
         dtype = R.dtype
         u = float(jnp.finfo(dtype).eps) / 2
         M = self.rotation.astype(dtype)
@@ -265,17 +265,17 @@ class ConvexShapes(ObstacleSet):
             R_local = jnp.matmul(M.T, R, precision=hi_prec)
             t_max = jnp.abs(dt).sum()
         t_local = jnp.matmul(dt, M, precision=hi_prec)
-        d = polytope_box_lower_bound(vertices, part, centre, R_local, t_local, self.lo, self.hi)
+        d = polytope_box_lower_bound(vertices, part, centre, R_local, t_local, self.lo, self.hi, iterations)
         if self.any_rounded:
             lo_z, hi_z = self._axis()
-            d_axis = polytope_box_lower_bound(vertices, part, centre, R_local, t_local, lo_z, hi_z)
+            d_axis = polytope_box_lower_bound(vertices, part, centre, R_local, t_local, lo_z, hi_z, iterations)
             d_cap = d_axis - self.radius - 4 * u * (jnp.abs(d_axis) + self.radius)
             d = jnp.where(self.rounded, jnp.maximum(d, d_cap), d)
         v_max = jnp.max(jnp.abs(vertices[part].astype(dtype)).sum(axis=-1))
         d = d - (2 * self.rot_err + 16 * u) * (v_max + t_max)  # R4
         if not self.any_polytope:
             return d
-        return self._piece(d, polytope_hull_lower_bound(vertices, part, centre, R, t, self.vertices))
+        return self._piece(d, polytope_hull_lower_bound(vertices, part, centre, R, t, self.vertices, iterations))
 
     # -- NumPy float64 twins -----------------------------------------------------------------------
 
@@ -325,16 +325,16 @@ class ConvexShapes(ObstacleSet):
             d = np.sqrt((gap * gap).sum(axis=-1).min(axis=-1)) - float(self.inflate)
         return d
 
-    def polytope_lower_bound_np(self, V, centre, R, t) -> float:
+    def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
         M = np.asarray(self.rotation, np.float64)
         R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
         dt = t - np.asarray(self.centre, np.float64)
         R_local = np.einsum("ji,...jk->...ik", M, R)
         t_local = dt @ M
         u = _EPS64 / 2
-        d = polytope_box_lower_bound_np(V, centre, R_local, t_local, self.lo, self.hi)
+        d = polytope_box_lower_bound_np(V, centre, R_local, t_local, self.lo, self.hi, iterations)
         if bool(self.rounded):
-            d_axis = polytope_box_lower_bound_np(V, centre, R_local, t_local, *self._axis_np())
+            d_axis = polytope_box_lower_bound_np(V, centre, R_local, t_local, *self._axis_np(), iterations)
             r = float(self.radius)
             d = max(d, d_axis - r - 4 * u * (abs(d_axis) + r))
         t_max = float(np.abs(dt).reshape(-1, 3).sum(axis=-1).max())
@@ -342,4 +342,4 @@ class ConvexShapes(ObstacleSet):
         d = d - (2 * float(self.rot_err) + 16 * u) * (v_max + t_max)
         if not self._is_piece():
             return d
-        return self._piece_np(d, polytope_hull_lower_bound_np(V, centre, R, t, self.vertices))
+        return self._piece_np(d, polytope_hull_lower_bound_np(V, centre, R, t, self.vertices, iterations))

@@ -16,11 +16,14 @@ float64 twin (suffix ``_np``) for the reference scheduler and ``larc verify``:
 - ``segment_lower_bound(p0, p1)``: a cheap lower bound of that distance (the broad phase);
 - ``point_distance(p)``: distance from points ``p`` (..., 3) to the item; only used for an *upper*
   bound that skips work, so it needs no rounding care;
-- ``polytope_lower_bound(vertices, part, centre, R, t)``: a lower bound on the distance from the
+- ``polytope_lower_bound(vertices, part, centre, R, t, iterations)``: a lower bound on the distance from the
   polytope ``conv(R vertices[part] + t)`` to the item (the hull stage; the twin takes the part's
   vertex array ``V`` instead of ``vertices, part``). ``R, t`` may also be a stack of placements
   ((m, 3, 3), (m, 3)): the polytope is then the hull of their union (the swept stage,
   :mod:`larc_jax.leaf.swept`), whose support is the largest of the placements' supports.
+  ``iterations`` (static) is the number of GJK steps after the first axis
+  (:mod:`larc_jax.obstacles.polytope`); 0 gives the first axis's bound alone, the cheap first
+  round of the hull stage (:mod:`larc_jax.leaf.cascade`, step 4).
 
 Soundness contract. Every distance kernel but ``point_distance`` returns a LOWER bound on the
 true Euclidean distance, valid for the numbers as computed (its own rounding already
@@ -43,6 +46,7 @@ import dataclasses
 import numpy as np
 
 from ..lazy_jax import jax, jnp
+from .polytope import GJK_ITERATIONS
 
 __all__ = ["ObstacleSet"]
 
@@ -85,10 +89,10 @@ class ObstacleSet(abc.ABC):
     def point_distance_np(self, p): ...
 
     @abc.abstractmethod
-    def polytope_lower_bound(self, vertices, part, centre, R, t): ...
+    def polytope_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS): ...
 
     @abc.abstractmethod
-    def polytope_lower_bound_np(self, V, centre, R, t) -> float: ...
+    def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float: ...
 
     # Set-level helpers (JAX): the one-item kernels over every item of one scene's set.
 
