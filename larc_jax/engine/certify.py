@@ -343,7 +343,9 @@ def certify(
       dtype: geometry dtype, float64 (default) or float32: forward kinematics and distances in
         that dtype (times, the curve and the sums stay float64; the guard accounts for it, see
         :mod:`larc_jax.leaf.interval`). ``method="reference"`` is always float64.
-      progress: called with the number of intervals evaluated after each chunk.
+      progress: called with the number of intervals evaluated after each chunk (with ``larc``, a
+        small frontier's descendants evaluated ahead count too, :data:`SPECULATE_INTERVALS`; the
+        result's ``evaluations`` counts only the intervals the frontier reached).
       devices: JAX devices to shard the intervals over (default: all devices of the default
         backend; see :mod:`larc_jax.engine.batch`). Results do not depend on it.
       on_compile: called with ``True`` before a kernel shape new to this process is compiled
