@@ -17,13 +17,14 @@ which computes the cache key).
   and later processes load that instead of tracing the Python code again
   (:func:`cached_kernel_call`; tracing costs about as much as loading the compiled kernel).
   An export is keyed by the SHA-256 of every source file of ``larc_jax``, the JAX and jaxlib
-  versions, the backend, the x64 mode, and the call's static structure and argument shapes, so a
+  versions (:func:`library_hash`), the backend, the x64 mode, and the call's static structure and argument shapes, so a
   changed library, JAX or argument never meets a stale kernel.
-* With the cache on, :func:`larc_jax.model.urdf.load_robot` also keeps the robot model it builds
-  (arrays and static structure, :mod:`larc_jax.model.robot_cache`), keyed by the same
-  library hash (:func:`library_hash`), the URDF's SHA-256 and the loader's arguments: a later process skips parsing the
-  URDF and importing its parser (yourdfpy, trimesh). The mesh files the URDF names are still
-  checked to exist.
+* With the cache on, the loaders also keep what they build from the robot's files
+  (:mod:`larc_jax.model.robot_cache`): the robot model, the URDF's parse and the hull parts,
+  keyed by the same library hash (:func:`library_hash`) and the SHA-256 of the files: a later
+  process skips parsing the URDF, reading the meshes and importing yourdfpy, trimesh and SciPy.
+  :func:`keep_builds_in` turns this on without importing JAX, so the command line reads and
+  checks every input before it pays for JAX's import.
 * :class:`CompileClock` measures, while active, the seconds JAX spends tracing, lowering and
   compiling (or loading from the cache), from :mod:`jax.monitoring` events; ``certify`` reports
   them as :attr:`larc_jax.engine.results.DatasetResult.compile_time_s`, separately from the run time.
@@ -37,7 +38,7 @@ import os
 import threading
 from pathlib import Path
 
-__all__ = ["CACHE_ENV", "default_cache_dir", "cache_dir_from_env", "enable_compile_cache", "cached_kernel_call",
+__all__ = ["CACHE_ENV", "default_cache_dir", "cache_dir_from_env", "enable_compile_cache", "keep_builds_in", "cached_kernel_call",
            "cached_kernel", "tracked_call",
            "CompileClock"]
 
@@ -66,16 +67,28 @@ def cache_dir_from_env() -> Path | None:
 def enable_compile_cache(path: str | os.PathLike | None = None) -> Path:
     """Turn on JAX's persistent compilation cache in ``path`` (default
     :func:`default_cache_dir`) for this process, keeping every compiled kernel however small or
-    quick to compile. This changes JAX's global configuration (it is an explicit opt-in; the
-    library never calls it by itself). Returns the folder."""
+    quick to compile, and :func:`keep_builds_in` that folder. This changes JAX's global
+    configuration (it is an explicit opt-in; the library never calls it by itself). Returns the
+    folder."""
     import jax
 
-    folder = Path(path).expanduser() if path is not None else default_cache_dir()
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = keep_builds_in(path)
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # no size threshold
     jax.config.update("jax_enable_compilation_cache", True)
+    return folder
+
+
+def keep_builds_in(path: str | os.PathLike | None = None) -> Path:
+    """Keep the traced kernels (:func:`cached_kernel_call`) and what the loaders build from the
+    robot's files (:mod:`larc_jax.model.robot_cache`) in ``path`` (default
+    :func:`default_cache_dir`), without importing JAX or changing its configuration: the command
+    line calls this first, reads and checks every input (a robot kept here loads without
+    yourdfpy), and only then imports JAX and calls :func:`enable_compile_cache`. Returns the
+    folder."""
+    folder = Path(path).expanduser() if path is not None else default_cache_dir()
+    folder.mkdir(parents=True, exist_ok=True)
     global _EXPORT_DIR
     _EXPORT_DIR = folder / "exported"
     return folder
@@ -94,11 +107,18 @@ def export_dir() -> Path | None:
 
 @functools.lru_cache(maxsize=1)
 def library_hash() -> str:
-    """SHA-256 of every source file of the package (any change gives new kernel keys)."""
-    import jax
-    import jaxlib
+    """SHA-256 of every source file of the package and of the versions of the packages whose
+    results the caches keep (JAX, jaxlib, yourdfpy, trimesh, SciPy, NumPy): any change gives new
+    keys. Read without importing them (:mod:`importlib.metadata`)."""
+    from importlib import metadata
 
-    h = hashlib.sha256(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
+    versions = []
+    for name in ("jax", "jaxlib", "yourdfpy", "trimesh", "scipy", "numpy"):
+        try:
+            versions.append(f"{name}={metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            versions.append(f"{name}=none")
+    h = hashlib.sha256(" ".join(versions).encode())
     root = Path(__file__).resolve().parent
     for p in sorted(root.rglob("*.py")):
         h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
@@ -116,7 +136,8 @@ def cached_kernel_call(fn, args: tuple):
 
     leaves, treedef = jax.tree.flatten(args)
     avals = [jax.ShapeDtypeStruct(np.shape(x), np.result_type(getattr(x, "dtype", x))) for x in leaves]
-    key = hashlib.sha256("\0".join([library_hash(), fn.__name__, str(jax.config.jax_enable_x64), str(treedef),
+    key = hashlib.sha256("\0".join([library_hash(), jax.default_backend(), fn.__name__, str(jax.config.jax_enable_x64),
+                                     str(treedef),
                                      repr([(a.shape, str(a.dtype)) for a in avals])]).encode()).hexdigest()
     call = _LOADED.get(key)
     if call is None:

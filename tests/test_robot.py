@@ -117,9 +117,12 @@ def test_env_var_resolution(monkeypatch, tmp_path):
 
 def test_one_urdf_parse_per_robot_load(piper_dir, tmp_path, monkeypatch):
     """Loading a robot and reading every link's collision geometry (what fitting and the hull
-    stage do) parses the URDF once; editing the file makes the next load parse it again."""
+    stage do) parses the URDF once; editing the file makes the next load parse it again. (With
+    the compilation cache off: with it on, the parse is kept on disk, tests/test_robot_cache.py.)"""
+    from larc_jax import compilation
     from larc_jax.enclosure.meshes import collision_geometry, link_elements, links_with_geometry
 
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", None)
     urdf = _copy_description(piper_dir, tmp_path)  # a new path: nothing cached for it yet
     parses = []
     real_load = yourdfpy.URDF.load

@@ -83,10 +83,12 @@ def _cmd_verify_capsules(args) -> int:
     return EXIT_OK
 
 
-def _compile_cache(args) -> None:
-    """Turn on JAX's persistent compilation cache unless ``--no-compile-cache`` or
-    ``LARC_COMPILE_CACHE=0`` say not to (:mod:`larc_jax.compilation`)."""
-    from ..compilation import CACHE_ENV, cache_dir_from_env, enable_compile_cache
+def _compile_cache(args, *, import_jax: bool) -> None:
+    """Keep kernels and the robot's builds in the compilation cache folder
+    (:func:`~larc_jax.compilation.keep_builds_in`; no JAX), and with ``import_jax`` also turn on
+    JAX's persistent compilation cache there (:func:`~larc_jax.compilation.enable_compile_cache`),
+    unless ``--no-compile-cache`` or ``LARC_COMPILE_CACHE=0`` say not to."""
+    from ..compilation import CACHE_ENV, cache_dir_from_env, enable_compile_cache, keep_builds_in
 
     if not getattr(args, "compile_cache", True):
         log.debug("compilation cache: off (--no-compile-cache)")
@@ -96,9 +98,18 @@ def _compile_cache(args) -> None:
         log.debug("compilation cache: off (%s=0)", CACHE_ENV)
         return
     try:
-        log.debug("compilation cache: %s", enable_compile_cache(folder))
+        log.debug("compilation cache: %s", (enable_compile_cache if import_jax else keep_builds_in)(folder))
     except OSError as exc:  # an unwritable cache is no reason to fail: compile instead
         log.warning("compilation cache %s unusable (%s); compiling without it", folder, exc.strerror or exc)
+
+
+def _start_jax(args) -> None:
+    """Import JAX once every input was read and checked: register the pytrees the readers
+    deferred, and turn on the persistent compilation cache."""
+    from ..lazy_jax import register_pytrees
+
+    register_pytrees()
+    _compile_cache(args, import_jax=True)
 
 
 def _certify_with_progress(args, spec, trajectories, scene, robot, capsules):
@@ -106,6 +117,7 @@ def _certify_with_progress(args, spec, trajectories, scene, robot, capsules):
     from ..engine.certify import certify
     from ..compilation import CompileClock
 
+    _start_jax(args)
     n = len(trajectories)
     total = {"fine": n * 2**spec.max_depth, "coarse": n * 2**spec.coarse_depth}.get(spec.method)
     desc = f"certifying ({spec.method})"
@@ -179,7 +191,7 @@ def _check_certify_options(args, outputs=()):
     for option, out in outputs:
         if out and Path(out).is_dir():
             raise LarcInputError(f"{option} {out}: is a directory, expected a file name to write")
-    _compile_cache(args)  # imports JAX: only once every option was checked
+    _compile_cache(args, import_jax=False)  # JAX is imported once every input was read (_start_jax)
     return spec
 
 
@@ -198,7 +210,10 @@ def _cmd_certify(args) -> int:
     spec = _check_certify_options(args, (("--json", args.json), ("--leaves", args.leaves),
                                          ("--certificate", args.certificate)))
     leaves_fmt = leaves_format(args.leaves) if args.leaves else None  # fail before the work
-    from ..enclosure.robot_file import load_robot_file  # loads JAX: after every option was checked
+    from ..lazy_jax import defer_jax
+
+    defer_jax()  # the robot, scene and trajectories are read and checked before JAX is imported
+    from ..enclosure.robot_file import load_robot_file
     from ..model.scene import read_scene
 
     timer = PhaseTimer()
@@ -249,6 +264,7 @@ def _certify_manifest(args) -> int:
     if not args.out:
         raise LarcInputError("--manifest needs --out RESULTS.parquet (a folder of Parquet parts)")
     spec = _check_certify_options(args)
+    _start_jax(args)
     job = ManifestJob(out=args.out, leaves=args.leaves, robot_file=args.robot, spec=spec, chunk_size=args.chunk_size)
     rows_done = [0]
     with progress_bar(args, desc=f"certifying ({spec.method})", unit=" intervals") as bar:
@@ -304,6 +320,7 @@ def _cmd_explain(args) -> int:
     out = Path(args.output) if args.output else None
     spec = _check_certify_options(args, (("--output", args.output),))
     _check_image_path(out or Path("x.png"))  # fail before the work
+    _start_jax(args)
     robot, capsules = load_robot_file(args.robot, hold=dict(spec.hold), active_joints=list(spec.joints) or None)
     capsules = _capsules_without(args, robot, capsules)
     scene = read_scene(args.scene, frame=robot.link_names[0])

@@ -299,9 +299,11 @@ def build_parts(robot: Robot, hull_parts: Sequence[tuple] = (), links: Sequence[
     return out
 
 
-def build_hulls(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float = 0.001) -> HullModel:
-    """The :class:`HullModel` of ``robot`` (module docstring); ``hull_parts``: split planes."""
-    parts = build_parts(robot, hull_parts)
+def build_hulls(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float = 0.001,
+                parts: Sequence[HullPart] | None = None) -> HullModel:
+    """The :class:`HullModel` of ``robot`` (module docstring); ``hull_parts``: split planes;
+    ``parts``: :func:`build_parts` of them, if already built."""
+    parts = build_parts(robot, hull_parts) if parts is None else parts
     K = max(len(p.vertices) for p in parts)
     table = np.stack([np.concatenate([p.vertices, np.repeat(p.vertices[:1], K - len(p.vertices), 0)]) for p in parts])
     radius = np.array([part_radius(padding_m, p.slack_m) for p in parts])
@@ -328,7 +330,7 @@ def _geometry_hashes(robot: Robot) -> tuple:
 
     model = robot_urdf_model(robot)  # also refuses a missing mesh, naming the link
     hashes = [robot.urdf_sha256]
-    for link in model.robot.links:
+    for link in model.links:
         for col in link.collisions:
             if col.geometry is not None and col.geometry.mesh is not None:
                 path = resolve_uri(col.geometry.mesh.filename, Path(robot.urdf_path), dict(robot.package_dirs))
@@ -336,21 +338,55 @@ def _geometry_hashes(robot: Robot) -> tuple:
     return tuple(hashes)
 
 
+def _robot_content(robot: Robot) -> str:
+    """SHA-256 of every field of ``robot`` (arrays by dtype, shape and bytes; the rest by repr)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in dataclasses.fields(robot):
+        value = getattr(robot, f.name)
+        if hasattr(value, "shape"):
+            a = np.ascontiguousarray(np.asarray(value))
+            h.update(f"{f.name} {a.dtype} {a.shape}".encode() + a.tobytes())
+        else:
+            h.update(f"{f.name} {value!r}".encode())
+    return h.hexdigest()
+
+
+def _kept_parts(key: dict, robot: Robot, hull_parts: Sequence[tuple]) -> list[HullPart]:
+    """:func:`build_parts`, kept on disk under ``key`` while the compilation cache is on
+    (:mod:`larc_jax.model.robot_cache`): a later process skips reading the meshes and Qhull."""
+    import json
+
+    from ..model.robot_cache import keep_arrays, kept_arrays
+
+    kept = kept_arrays("hull_parts", key)
+    if kept is not None:
+        try:
+            meta = json.loads(str(kept["meta"]))
+            return [HullPart(m["name"], m["link"], kept[f"v{k}"], float(m["slack_m"]), int(m["n_elements"]))
+                    for k, m in enumerate(meta)]
+        except (KeyError, ValueError, TypeError):  # unreadable: build again
+            pass
+    parts = build_parts(robot, hull_parts)
+    meta = [{"name": p.name, "link": p.link, "slack_m": p.slack_m, "n_elements": int(p.n_elements)} for p in parts]
+    keep_arrays("hull_parts", key, {"meta": np.array(json.dumps(meta)),
+                                    **{f"v{k}": np.asarray(p.vertices, np.float64) for k, p in enumerate(parts)}})
+    return parts
+
+
 _CACHE: dict = {}
 
 
 def hull_model(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float = 0.001) -> HullModel:
     """:func:`build_hulls`, cached per process on everything the result depends on (the geometry
-    files' contents, the robot's joints, held values and stated joints, the planes, the padding)."""
-    key = (
-        _geometry_hashes(robot), robot.link_names, robot.joint_names, robot.active_joint_names,
-        tuple(np.asarray(robot.q_held, np.float64).tolist()), robot.stated_joints,
-        tuple(np.asarray(robot.T_parent_joint, np.float64).ravel().tolist()),
-        tuple((l, tuple(n), float(o)) for l, n, o in hull_parts), float(padding_m),
-    )
+    files' contents, the robot's joints, held values and stated joints, the planes, the padding);
+    the parts also on disk while the compilation cache is on (:func:`_kept_parts`)."""
+    planes = tuple((l, tuple(float(x) for x in n), float(o)) for l, n, o in hull_parts)
+    key = (_geometry_hashes(robot), _robot_content(robot), planes, float(padding_m))
     if key not in _CACHE:
         if len(_CACHE) > 16:
             _CACHE.clear()
-        _CACHE[key] = build_hulls(robot, hull_parts, padding_m)
+        parts = _kept_parts({"geometry": key[0], "robot": key[1], "planes": planes}, robot, hull_parts)
+        _CACHE[key] = build_hulls(robot, hull_parts, padding_m, parts=parts)
     return _CACHE[key]
-

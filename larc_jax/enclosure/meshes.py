@@ -156,7 +156,7 @@ def _collisions(robot: Robot, link: str):
 
 def link_collisions(robot: Robot, link: str) -> list[tuple[np.ndarray, object, tuple | None]]:
     """The ``<collision>`` elements of ``link``: ``(T_link_geometry, geometry, mesh)`` each, with
-    ``T_link_geometry`` the (4, 4) collision origin, ``geometry`` the URDF geometry (yourdfpy:
+    ``T_link_geometry`` the (4, 4) collision origin, ``geometry`` the URDF geometry (:class:`~larc_jax.model.urdf_tree.Geometry`:
     ``.box``, ``.sphere``, ``.cylinder``, ``.mesh``) and ``mesh`` the ``(vertices (V, 3), faces
     (F, 3))`` of a mesh in the geometry frame, COLLADA units and the URDF ``scale`` applied
     (``None`` for a primitive). The one mesh loader of the project: the capsule fit and the FCL
@@ -234,8 +234,6 @@ def stroke_shifts(robot: Robot, link: str, model=None) -> np.ndarray:
     """Link-frame offsets (S, 3) at which :func:`link_elements` copies ``link``'s elements: the
     zero offset, then every combination of stroke ends of the unstated held prismatic joints
     above it (module docstring); just the zero offset when there are none."""
-    from scipy.spatial.transform import Rotation
-
     model = model if model is not None else robot_urdf_model(robot)
     shifts = [np.zeros(3)]
     R_link_child = np.eye(3)  # rotation: frame of the current link -> frame of `link`
@@ -258,6 +256,8 @@ def stroke_shifts(robot: Robot, link: str, model=None) -> np.ndarray:
             shifts = [d + e * u for e in (0.0, lo - held, hi - held) for d in shifts]
         R_motion = np.eye(3)
         if robot.joint_type[i] == JointType.REVOLUTE:
+            from scipy.spatial.transform import Rotation  # here: SciPy's import (0.3 s) only where needed
+
             R_motion = Rotation.from_rotvec(np.asarray(robot.axis[i], float) * float(robot.q_held[i])).as_matrix()
         R_link_child = R_link_child @ (np.asarray(robot.T_parent_joint[i], float)[:3, :3] @ R_motion).T
         i = robot.parent[i]

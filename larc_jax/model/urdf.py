@@ -1,7 +1,8 @@
 """URDF loading: a URDF (and its collision meshes' locations) → :class:`~larc_jax.model.robot.Robot`.
 
 Steps of :func:`load_robot`: parse the file with yourdfpy (:func:`load_urdf_model`, which also
-checks that every collision mesh resolves to a file), check the joints (:func:`_check_joints`),
+checks that every collision mesh resolves to a file; the loaders read the parse as a
+:class:`~larc_jax.model.urdf_tree.UrdfTree`), check the joints (:func:`_check_joints`),
 order the links breadth-first, choose the active chain (:func:`_active_chain`), compute the held
 values of the other movable joints and their mimics (:func:`_held_values`), then fill the arrays.
 
@@ -33,6 +34,7 @@ import numpy as np
 
 from ..errors import LarcInputError
 from .robot import CONTINUOUS_LIMIT_RAD, JointType, Robot
+from .urdf_tree import UrdfTree
 
 __all__ = [
     "load_robot",
@@ -115,17 +117,18 @@ def load_urdf_model(
     package_dirs: Mapping[str, str] | None = None,
     *,
     sha256: str | None = None,
-):
+) -> UrdfTree:
     """Parse a URDF with yourdfpy, resolving ``package://`` URIs; checks every mesh file exists.
 
     The file is read once (:func:`~larc_jax.io.read_input_bytes`) and those bytes are parsed:
     the parse is cached per process, keyed by the SHA-256 of the bytes, the resolved path and
     package folders, so that loading a robot and then reading its collision geometry
     (:mod:`larc_jax.enclosure.meshes`) parses the file once, and a changed file (even one of the
-    same size and modification time) is parsed again. With ``sha256`` (a robot's
+    same size and modification time) is parsed again; with the compilation cache on, the parse
+    is also kept on disk by that SHA-256 (:func:`_parse_urdf`). With ``sha256`` (a robot's
     ``urdf_sha256``) the bytes must have that hash: the geometry read for a robot is the file
-    its certificate names, never a later edit. Returns the ``yourdfpy.URDF`` object, shared and
-    read-only. Raises :class:`LarcInputError` naming the file and the link for an unreadable or
+    its certificate names, never a later edit. Returns what the loaders read of the parse
+    (:class:`~larc_jax.model.urdf_tree.UrdfTree`, shared and frozen). Raises :class:`LarcInputError` naming the file and the link for an unreadable or
     changed URDF or a missing mesh.
     """
     from ..io import read_input_bytes
@@ -142,7 +145,7 @@ def load_urdf_model(
         )
     dirs = package_dirs_for(urdf_path, package_dirs)
     model = _parse_urdf(str(urdf_path.resolve()), digest, tuple(sorted(dirs.items())), data)
-    for link in model.robot.links:  # checked on every call: a mesh may vanish after the parse
+    for link in model.links:  # checked on every call: a mesh may vanish after the parse
         for col in link.collisions:
             mesh = col.geometry.mesh if col.geometry is not None else None
             if mesh is not None:
@@ -156,11 +159,22 @@ def load_urdf_model(
 
 
 @functools.lru_cache(maxsize=8)
-def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple, data: bytes):
-    """The yourdfpy parse of ``data`` (the bytes of ``urdf_path``, hashed to ``sha256``) behind
-    :func:`load_urdf_model`."""
+def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple, data: bytes) -> UrdfTree:
+    """What the loaders read of the yourdfpy parse of ``data`` (the bytes of ``urdf_path``, hashed
+    to ``sha256``) behind :func:`load_urdf_model`: :mod:`larc_jax.model.urdf_tree`, kept on disk
+    by the bytes' SHA-256 while the compilation cache is on (:mod:`larc_jax.model.robot_cache`)."""
     import io
 
+    from .robot_cache import keep_text, kept_text
+    from .urdf_tree import tree_from_json, tree_to_json, urdf_tree
+
+    key = {"urdf_sha256": sha256}
+    text = kept_text("urdf", key)
+    if text is not None:
+        try:
+            return tree_from_json(text)
+        except (ValueError, KeyError, TypeError):  # unreadable: parse again
+            pass
     import yourdfpy
 
     dirs = dict(package_dirs)
@@ -169,7 +183,7 @@ def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple, data: bytes):
         return str(resolve_uri(fname, Path(urdf_path), dirs))
 
     try:
-        return yourdfpy.URDF.load(
+        model = yourdfpy.URDF.load(
             io.BytesIO(data),
             filename_handler=handler,
             mesh_dir=str(Path(urdf_path).parent),
@@ -180,6 +194,9 @@ def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple, data: bytes):
         )
     except Exception as exc:  # noqa: BLE001 - report any parse failure as bad input
         raise LarcInputError(f"{urdf_path}: cannot parse URDF ({exc})") from None
+    tree = urdf_tree(model)
+    keep_text("urdf", key, tree_to_json(tree))
+    return tree
 
 
 _TYPE_OF = {
@@ -204,8 +221,8 @@ def _movable(j) -> bool:
 
 def _check_joints(model, urdf_path: Path) -> dict:
     """Supported joint types, finite ordered limits, mimic leaders that exist and are movable."""
-    joints = {j.name: j for j in model.robot.joints}
-    for j in model.robot.joints:
+    joints = {j.name: j for j in model.joints}
+    for j in model.joints:
         if j.type not in _TYPE_OF:
             raise LarcInputError(f"{urdf_path}: joint '{j.name}' has unsupported type '{j.type}'")
         if j.type in ("revolute", "prismatic") and (
@@ -238,10 +255,10 @@ def _tree(model, urdf_path: Path):
     """Links in breadth-first order from the single root, each with its parent index and the
     joint that connects it (None for the root); and the child joints of every link."""
     children: dict[str, list] = {}
-    for j in model.robot.joints:
+    for j in model.joints:
         children.setdefault(j.parent, []).append(j)
-    child_links = {j.child for j in model.robot.joints}
-    roots = [l.name for l in model.robot.links if l.name not in child_links]
+    child_links = {j.child for j in model.joints}
+    roots = [l.name for l in model.links if l.name not in child_links]
     if len(roots) != 1:
         raise LarcInputError(f"{urdf_path}: expected one root link, found {roots}")
     link_names, parent, joint_of = [roots[0]], [-1], [None]
@@ -252,7 +269,7 @@ def _tree(model, urdf_path: Path):
             parent.append(k)
             joint_of.append(j)
         k += 1
-    if len(link_names) != len(model.robot.links):
+    if len(link_names) != len(model.links):
         raise LarcInputError(f"{urdf_path}: links and joints do not form one tree")
     return link_names, parent, joint_of, children
 
@@ -459,7 +476,7 @@ def _build_robot(model, urdf_path: Path, urdf_sha256: str, package_dirs, active_
         q_held=q_held,
         q_lower=lower,
         q_upper=upper,
-        name=model.robot.name,
+        name=model.name,
         link_names=tuple(link_names),
         parent=tuple(parent),
         joint_names=tuple(jname),
