@@ -4,11 +4,18 @@
 
 Sections (each printed and written into the JSON):
 
-* ``stageB`` — the 160 committed Stage B trajectories with their scenes: LARC and fixed-fine
-  whole-dataset warm times (median of 3 warm calls), interval evaluations per second, and *real*
-  capsule–box pairs per second (each evaluated interval counts its capsules × the real boxes of
-  its scene; padded or masked boxes do not count); compile time (first call − warm call)
-  reported separately.
+* ``stageB`` — the 160 committed Stage B trajectories with their scenes, for the paper's capsule
+  test and the default hull cascade (``enclosure="hull"``): LARC and fixed-fine whole-dataset
+  warm times (median of 3 warm calls), interval evaluations per second, and *real* capsule–box
+  pairs per second (each evaluated interval counts its capsules × the real boxes of its scene;
+  padded or masked boxes do not count); compile time (first call − warm call) reported
+  separately; and the paper's paired protocol, one trajectory per call (:func:`section_paired`):
+  the median over trajectories of fine / LARC.
+* ``coldstart`` — ``larc certify`` of the README example as a fresh process, with an empty and
+  a warm compilation cache, and a wrong option's refusal (:mod:`experiments.bench_coldstart`).
+* ``manifest`` — ``larc certify --manifest`` of ``--manifest-n`` rows cycling through the
+  tightness set's planned trajectories (``results/tightness``), default cascade, as one fresh
+  process with an empty compilation cache: wall time (compiling included) and peak RSS.
 * ``kernel`` — XLA's cost analysis of the compiled interval kernel at the largest bucket on the
   Stage B scenes: flops and bytes accessed per interval, against the machine's nominal peak.
 * ``reference`` — the NumPy float64 reference (the paper's Algorithm 1) on the same
@@ -22,8 +29,9 @@ Sections (each printed and written into the JSON):
   for each N of ``--rss-n``, one subprocess per N (``experiments.bench_rss``), streamed, and in
   one ``certify`` call for N up to :data:`MAX_CALL_N` (a call holds all its inputs and leaves).
 
-Every section measures the paper's capsule test (``enclosure="capsules"``); what the hull
-cascade adds is measured by :mod:`experiments.bench_cascade`.
+The kernel, reference, audit, stream and RSS sections measure the paper's capsule test
+(``enclosure="capsules"``); :mod:`experiments.bench_cascade` breaks the hull cascade's cost down
+by stage.
 
 Machine peak: ``cores × clock × flops/cycle`` with flops/cycle = 16 (float64: two 256-bit FMA
 pipes, as on AMD Zen 4 and Intel AVX2/AVX-512 server cores) unless ``--peak-gflops`` is given;
@@ -51,7 +59,11 @@ SCENES_DIR = ROOT / "configs" / "scenes"
 __all__ = ["stageB_dataset", "stageB_like", "main"]
 
 ENCLOSURE = "capsules"
-"""The interval test every section measures (module docstring)."""
+"""The interval test of the kernel, reference, audit, stream and RSS sections (module docstring)."""
+ENCLOSURES = ("capsules", "hull")
+"""The Stage B section's: the paper's capsule test, and the default hull cascade."""
+PAIRED_REPEATS = 3
+"""Timed calls per trajectory and method in the paired section."""
 MAX_CALL_N = 10_000
 """Largest N of the RSS section measured as one ``certify`` call (module docstring)."""
 
@@ -104,12 +116,12 @@ def real_pairs(result, capsules, scenes) -> int:
     return int((result.evaluations * boxes).sum()) * capsules.n_capsules
 
 
-def section_stageB(robot, capsules, trajs, scenes) -> dict:
+def section_stageB(robot, capsules, trajs, scenes, enclosure: str) -> dict:
     from larc_jax import certify
 
-    out = {"n_trajectories": len(trajs)}
+    out = {"n_trajectories": len(trajs), "enclosure": enclosure}
     for method in ("larc", "fine"):
-        res, t_first, t_warm = _warm(lambda: certify(trajs, scenes, robot, capsules, method=method, enclosure=ENCLOSURE))
+        res, t_first, t_warm = _warm(lambda: certify(trajs, scenes, robot, capsules, method=method, enclosure=enclosure))
         evals = int(res.evaluations.sum())
         pairs = real_pairs(res, capsules, scenes)
         out[method] = {
@@ -118,7 +130,33 @@ def section_stageB(robot, capsules, trajs, scenes) -> dict:
             "intervals_per_s": evals / t_warm, "pairs_per_s": pairs / t_warm,
         }
     out["fine_over_larc_time"] = out["fine"]["warm_s"] / out["larc"]["warm_s"]
+    out["fine_over_larc_evaluations"] = out["fine"]["evaluations"] / out["larc"]["evaluations"]
+    out["paired"] = section_paired(robot, capsules, trajs, scenes, enclosure)
     return out
+
+
+def section_paired(robot, capsules, trajs, scenes, enclosure: str, repeats: int = PAIRED_REPEATS) -> dict:
+    """The paper's paired protocol: each trajectory certified alone, by LARC and by fixed-fine,
+    after one untimed call each (compiling its shapes), ``repeats`` timed rounds (the order of
+    the two methods alternating); per trajectory the median of its rounds per method, and the
+    median over trajectories of the ratio fine / LARC."""
+    from larc_jax import certify
+
+    larc_ms, fine_ms, ratios = [], [], []
+    for traj, scene in zip(trajs, scenes):
+        calls = {m: (lambda m=m: certify([traj], [scene], robot, capsules, method=m, enclosure=enclosure))
+                 for m in ("larc", "fine")}
+        for call in calls.values():
+            call()
+        times = {m: [] for m in calls}
+        for r in range(repeats):
+            for m in (("larc", "fine") if r % 2 == 0 else ("fine", "larc")):
+                times[m].append(_timed(calls[m])[1])
+        larc_ms.append(1e3 * statistics.median(times["larc"]))
+        fine_ms.append(1e3 * statistics.median(times["fine"]))
+        ratios.append(fine_ms[-1] / larc_ms[-1])
+    return {"n": len(trajs), "repeats": repeats, "larc_median_ms": statistics.median(larc_ms),
+            "fine_median_ms": statistics.median(fine_ms), "median_fine_over_larc": statistics.median(ratios)}
 
 
 def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
@@ -129,7 +167,7 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
     from larc_jax.engine.certify import _check_inputs  # noqa: PLC2701 - the benchmark measures internals
     from larc_jax.leaf.interval import trajectory_rounding
 
-    trajs, scenes, *_ = _check_inputs(trajs, scenes, robot, capsules, 0.01, 9, 4, np.float64, None)
+    trajs, scenes, _ = _check_inputs(trajs, scenes, robot, capsules, np.float64, None)
     bounds = [trajectory_rounding(t, robot, capsules) for t in trajs]
     batch = prepare(trajs, scenes, robot, capsules, 0.01, np.float64, bounds)
     F = BUCKETS[-1]
@@ -188,6 +226,52 @@ def section_rss(ns: list[int], mode: str) -> list[dict]:
     return out
 
 
+def tightness_rows() -> list[tuple[Path, Path]]:
+    """``(trajectory file, scene file)`` of every planned trajectory of the tightness set."""
+    from experiments import generate as gen
+    from experiments import tightness as tt
+
+    plan = tt.Plan(out=ROOT / "results" / "tightness", scenes=tt.SCENES, paddings_mm=tt.PADDINGS_MM, pairs=tt.PAIRS)
+    config = gen.load_config(tt.CONFIG_PATH)
+    return [(Path(r["path"]).resolve(), (ROOT / config["scenes"][r["scene"]]["file"]).resolve())
+            for r in plan.trajectories()]
+
+
+_MANIFEST_RUN = """import json, resource, sys, time
+from larc_jax.drivers.cli import main
+t0 = time.perf_counter()
+rc = main(sys.argv[1:])
+print(json.dumps(dict(rc=rc, s=time.perf_counter() - t0, peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))
+"""
+
+
+def section_manifest(n: int) -> dict:
+    """``larc certify --manifest`` of ``n`` rows (module docstring), one fresh process."""
+    import tempfile
+
+    import pandas as pd
+
+    rows = tightness_rows()
+    with tempfile.TemporaryDirectory() as d:
+        manifest = Path(d) / "manifest.csv"
+        lines = ["trajectory,scene,id"] + [f"{t},{s},row{k}" for k, (t, s) in
+                                           ((k, rows[k % len(rows)]) for k in range(n))]
+        manifest.write_text("\n".join(lines) + "\n")
+        cmd = [sys.executable, "-c", _MANIFEST_RUN, "-q", "certify", "--manifest", str(manifest),
+               "--out", str(Path(d) / "out.parquet"), "--no-fail-on-uncertified"]
+        env = dict(os.environ, LARC_COMPILE_CACHE=str(Path(d) / "cache"))  # compiling included
+        t0 = time.perf_counter()
+        p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env)
+        wall = time.perf_counter() - t0
+        if p.returncode != 0:
+            raise RuntimeError(f"larc certify --manifest failed:\n{p.stderr[-2000:]}")
+        run = json.loads(p.stdout.strip().splitlines()[-1])
+        df = pd.read_parquet(Path(d) / "out.parquet")
+    return {"n": n, "distinct_trajectories": len(rows), "rows_written": len(df),
+            "certified": int(df["certified"].sum()), "wall_s": wall, "peak_rss_mb": run["peak_rss_mb"],
+            "trajectories_per_s": n / wall}
+
+
 def _print(prefix: str, obj) -> None:
     if isinstance(obj, dict):
         for k, v in obj.items():
@@ -204,6 +288,7 @@ def main(argv=None) -> int:
     p.add_argument("--skip-audit", action="store_true")
     p.add_argument("--stream-n", type=int, default=4096)
     p.add_argument("--rss-n", default="1000,10000,100000", help="comma-separated N for the RSS section ('' skips)")
+    p.add_argument("--manifest-n", type=int, default=20_000, help="rows of the manifest section (0 skips)")
     p.add_argument("--peak-gflops", type=float, help="nominal float64 peak of the machine (module doc)")
     args = p.parse_args(argv)
 
@@ -217,18 +302,18 @@ def main(argv=None) -> int:
     trajs, scenes = stageB_dataset(robot)
     if args.quick:
         trajs, scenes = trajs[::8], scenes[::8]
-        args.stream_n, args.rss_n = 300, "300"
+        args.stream_n, args.rss_n, args.manifest_n = 300, "300", min(args.manifest_n, 300)
     cores = os.cpu_count() or 1
     peak = args.peak_gflops or cores * 2.6 * 16  # GHz of this machine's cores (lscpu), module doc
     out = {"machine": {"processor": platform.processor() or platform.machine(), "cores": cores,
                        "device": str(jax.devices()[0]), "jax": jax.__version__,
                        "peak_gflops_float64_nominal": peak}}
     t0 = time.perf_counter()
-    out["stageB"] = section_stageB(robot, capsules, trajs, scenes)
-    larc_s = out["stageB"]["larc"]["warm_s"]
+    out["stageB"] = {enc: section_stageB(robot, capsules, trajs, scenes, enc) for enc in ENCLOSURES}
+    larc_s = out["stageB"][ENCLOSURE]["larc"]["warm_s"]
     out["kernel"] = section_kernel(robot, capsules, trajs, scenes, peak)
     out["kernel"]["achieved_gflops_larc"] = (  # intervals run through the broad-phase kernel
-        out["kernel"]["broad_phase"]["flops_per_interval"] * out["stageB"]["larc"]["intervals_per_s"] / 1e9)
+        out["kernel"]["broad_phase"]["flops_per_interval"] * out["stageB"][ENCLOSURE]["larc"]["intervals_per_s"] / 1e9)
     out["kernel"]["fraction_of_peak"] = out["kernel"]["achieved_gflops_larc"] / peak
     if not args.skip_reference:
         out["reference"] = section_reference(robot, capsules, trajs, scenes, larc_s)
@@ -239,6 +324,11 @@ def main(argv=None) -> int:
     # One certify call holds every input trajectory and every leaf in memory at once, so it is
     # measured up to 10^4; streaming (constant memory) at every N.
     out["rss"] = section_rss([n for n in ns if n <= MAX_CALL_N], "call") + section_rss(ns, "stream")
+    from experiments import bench_coldstart
+
+    out["coldstart"] = bench_coldstart.measure(3)
+    if args.manifest_n:
+        out["manifest"] = section_manifest(args.manifest_n)
     out["bench_wall_s"] = time.perf_counter() - t0
     _print("", out)
     if args.json:
@@ -249,18 +339,54 @@ def main(argv=None) -> int:
 
 def markdown(out: dict) -> str:
     """The README's benchmark table, from one run's figures (written beside the JSON)."""
-    b, k = out["stageB"], out["kernel"]
-    L, F = b["larc"], b["fine"]
+    k = out["kernel"]
+    runs = out["stageB"]
+    cap, hull = runs["capsules"], runs["hull"]
+    cols = [(cap, "larc"), (cap, "fine"), (hull, "larc"), (hull, "fine")]
+
+    def row(label: str, fmt) -> str:
+        return f"| {label} | " + " | ".join(fmt(r[m]) for r, m in cols) + " |"
+
     lines = [
-        f"Stage B: {b['n_trajectories']} trajectories, capsule test, {out['machine']['cores']} CPU cores "
+        f"Stage B: {cap['n_trajectories']} trajectories, {out['machine']['cores']} CPU cores "
         f"({out['machine']['device']}), one run:", "",
-        "| | LARC (batched JAX) | fixed-fine (JAX) |", "|---|---|---|",
-        f"| certified | {L['certified']} | {F['certified']} |",
-        f"| interval evaluations | {L['evaluations']:,} | {F['evaluations']:,} |",
-        f"| warm whole-set time | {L['warm_s']:.3f} s | {F['warm_s']:.3f} s |",
-        f"| compile time (first call − warm call) | {L['compile_s']:.2f} s | {F['compile_s']:.2f} s |",
-        f"| intervals / s | {L['intervals_per_s']:,.0f} | {F['intervals_per_s']:,.0f} |",
-        f"| real capsule–box pairs / s | {L['pairs_per_s']:,.0f} | {F['pairs_per_s']:,.0f} |",
+        "| | capsules: LARC | capsules: fine | cascade: LARC | cascade: fine |", "|---|---|---|---|---|",
+        row("certified", lambda r: f"{r['certified']}"),
+        row("interval evaluations", lambda r: f"{r['evaluations']:,}"),
+        row("warm whole-set time", lambda r: f"{r['warm_s']:.3f} s"),
+        row("compile time (first call − warm call)", lambda r: f"{r['compile_s']:.2f} s"),
+        row("intervals / s", lambda r: f"{r['intervals_per_s']:,.0f}"),
+        row("real capsule–box pairs / s", lambda r: f"{r['pairs_per_s']:,.0f}"),
+        "| one trajectory per call: median time | " + " | ".join(
+            f"{r['paired'][m + '_median_ms']:.2f} ms" for r, m in cols) + " |",
+        "",
+        "| fine / LARC | capsules | cascade | target (issue 20) |", "|---|---|---|---|",
+        f"| interval evaluations | {cap['fine_over_larc_evaluations']:.2f}× | {hull['fine_over_larc_evaluations']:.2f}× | |",
+        f"| warm whole-set time | {cap['fine_over_larc_time']:.2f}× | {hull['fine_over_larc_time']:.2f}× | "
+        f"≥ 0.7 × evaluations ({0.7 * cap['fine_over_larc_evaluations']:.2f}× / "
+        f"{0.7 * hull['fine_over_larc_evaluations']:.2f}×) |",
+        f"| one trajectory per call, median of per-trajectory ratios | {cap['paired']['median_fine_over_larc']:.2f}× | "
+        f"{hull['paired']['median_fine_over_larc']:.2f}× | ≥ 1.5× |",
+        "",
+        f"The cascade costs LARC {hull['larc']['warm_s'] / cap['larc']['warm_s']:.2f}× the capsule test on the whole "
+        f"set and {hull['paired']['larc_median_ms'] / cap['paired']['larc_median_ms']:.2f}× one trajectory per call "
+        f"(target ≤ 2×).",
+    ]
+    if "coldstart" in out:
+        c = out["coldstart"]
+        lines += ["", f"| `{c['command']}`, a fresh process (median of {c['repeats']}) | wall | target |",
+                  "|---|---|---|",
+                  f"| first ever (empty compilation cache) | {c['first_ever']['wall_s']:.2f} s | ≤ 15 s |",
+                  f"| second and later (warm cache) | {c['warm_cache']['wall_s']:.2f} s | ≤ 2 s |",
+                  f"| a wrong `--hold`, refused (exit 2) | {c['bad_option_s']:.2f} s | < 1 s |"]
+    if "manifest" in out:
+        m = out["manifest"]
+        lines += ["", f"`larc certify --manifest`, {m['n']:,} rows (the {m['distinct_trajectories']} planned "
+                      f"trajectories of the tightness set, cycled), default cascade, one fresh process with an empty "
+                      f"compilation cache: {m['wall_s']:.0f} s ({m['trajectories_per_s']:.1f} trajectories/s, "
+                      f"compiling included), peak RSS {m['peak_rss_mb']:,.0f} MB (target ≤ 10 min, ≤ 4 GB); "
+                      f"{m['certified']:,} certified."]
+    lines += [
         "",
         "| kernel (XLA cost analysis, per interval) | flops | bytes accessed |", "|---|---|---|",
         *(f"| {name.replace('_', ' ')} | {k[name]['flops_per_interval']:,.0f} | {k[name]['bytes_per_interval']:,.0f} |"

@@ -9,7 +9,9 @@ new process, each time timing the whole process (wall clock, from ``subprocess``
   times, each with its own empty cache;
 * **warm cache**: ``repeats`` more runs sharing the cache the first run filled;
 * **no cache**: ``repeats`` runs with ``--no-compile-cache`` (what every run cost before the
-  cache).
+  cache);
+* **bad option**: ``repeats`` runs with a wrong ``--hold`` (a joint the robot does not have),
+  which must be refused (exit 2) before anything compiles.
 
 The phases come from ``larc -v``'s ``time:`` line (loading the robot: URDF parse, capsule file
 and motion constants; reading the trajectory; certifying, split into compiling — tracing,
@@ -37,7 +39,7 @@ EXAMPLES = ROOT / "configs" / "examples"
 COMMAND = ["certify", str(EXAMPLES / "reach_left.yaml"), "--scene", str(EXAMPLES / "cell.yaml")]
 TIME_LINE = re.compile(r"time: (?P<laps>.*) \(of which compiling (?P<compile>[\d.]+) s, running (?P<run>[\d.]+) s\)")
 
-__all__ = ["run_once", "main"]
+__all__ = ["run_once", "refusal_once", "measure", "main"]
 
 
 def _larc() -> list[str]:
@@ -63,6 +65,19 @@ def run_once(cache_home: str | None, *extra: str) -> dict:
                 certify_s=laps.get("certify", 0.0), compile_s=float(m["compile"]), run_s=float(m["run"]))
 
 
+def refusal_once(cache_home: str) -> float:
+    """Wall seconds of a fresh ``larc certify`` with a wrong ``--hold``, which must exit 2."""
+    env = dict(os.environ, XDG_CACHE_HOME=cache_home)
+    env.pop("LARC_COMPILE_CACHE", None)
+    t0 = time.perf_counter()
+    p = subprocess.run(_larc() + [*COMMAND, "--hold", "no_such_joint=0"], env=env, capture_output=True, text=True,
+                       cwd=ROOT)
+    wall = time.perf_counter() - t0
+    if p.returncode != 2 or "no_such_joint" not in p.stderr:
+        raise RuntimeError(f"a wrong --hold was not refused (exit {p.returncode}):\n{p.stderr}")
+    return wall
+
+
 def import_time() -> float:
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-c", "import larc_jax.drivers.cli, larc_jax.engine.certify"], check=True, cwd=ROOT)
@@ -73,32 +88,44 @@ def _median(rows: list[dict]) -> dict:
     return {k: round(statistics.median(r[k] for r in rows), 3) for k in rows[0]}
 
 
+def measure(repeats: int = 3) -> dict:
+    """Every figure of the module docstring, medians of ``repeats`` runs each."""
+    load_before = os.getloadavg()
+    imports = [import_time() for _ in range(repeats)]
+    first, warm, nocache, refused = [], [], [], []
+    with tempfile.TemporaryDirectory() as shared:
+        for _ in range(repeats):
+            with tempfile.TemporaryDirectory() as fresh:
+                first.append(run_once(fresh))
+        run_once(shared)  # fill the shared cache
+        for _ in range(repeats):
+            warm.append(run_once(shared))
+        for _ in range(repeats):
+            nocache.append(run_once(shared, "--no-compile-cache"))
+        for _ in range(repeats):
+            refused.append(refusal_once(shared))
+    out = dict(
+        command="larc certify configs/examples/reach_left.yaml --scene configs/examples/cell.yaml",
+        repeats=repeats, import_s=round(statistics.median(imports), 3),
+        first_ever=_median(first), warm_cache=_median(warm), no_cache=_median(nocache),
+        bad_option_s=round(statistics.median(refused), 3),
+        machine=dict(cpus=os.cpu_count(), system=f"{platform.system()} {platform.machine()}",
+                     python=platform.python_version(), load_average_before=[round(x, 2) for x in load_before],
+                     load_average_after=[round(x, 2) for x in os.getloadavg()]),
+    )
+    w = out["warm_cache"]
+    phases = dict(imports=out["import_s"], robot=w["robot_s"], compile=w["compile_s"], run=w["run_s"])
+    out["warm_cache_dominant_phase"] = max(phases, key=phases.get)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", help="write the figures as JSON")
     args = ap.parse_args(argv)
 
-    load_before = os.getloadavg()
-    imports = [import_time() for _ in range(args.repeats)]
-    first, warm, nocache = [], [], []
-    with tempfile.TemporaryDirectory() as shared:
-        for _ in range(args.repeats):
-            with tempfile.TemporaryDirectory() as fresh:
-                first.append(run_once(fresh))
-        run_once(shared)  # fill the shared cache
-        for _ in range(args.repeats):
-            warm.append(run_once(shared))
-        for _ in range(args.repeats):
-            nocache.append(run_once(shared, "--no-compile-cache"))
-    out = dict(
-        command="larc certify configs/examples/reach_left.yaml --scene configs/examples/cell.yaml",
-        repeats=args.repeats, import_s=round(statistics.median(imports), 3),
-        first_ever=_median(first), warm_cache=_median(warm), no_cache=_median(nocache),
-        machine=dict(cpus=os.cpu_count(), system=f"{platform.system()} {platform.machine()}",
-                     python=platform.python_version(), load_average_before=[round(x, 2) for x in load_before],
-                     load_average_after=[round(x, 2) for x in os.getloadavg()]),
-    )
+    out = measure(args.repeats)
     w = out["warm_cache"]
     phases = dict(imports=out["import_s"], robot=w["robot_s"], compile=w["compile_s"], run=w["run_s"])
     out["warm_cache_dominant_phase"] = max(phases, key=phases.get)
@@ -107,6 +134,7 @@ def main(argv=None) -> int:
         print(f"{name:>10}: {r['wall_s']:.2f} s wall (robot {r['robot_s']:.2f} s, certify {r['certify_s']:.2f} s: "
               f"compile {r['compile_s']:.2f} s, run {r['run_s']:.2f} s)")
     print(f"    import: {out['import_s']:.2f} s (fresh python, import larc_jax.drivers.cli + certify)")
+    print(f"bad option: refused in {out['bad_option_s']:.2f} s")
     print(f"warm cache: dominated by {out['warm_cache_dominant_phase']}; load average "
           f"{out['machine']['load_average_before']} -> {out['machine']['load_average_after']}")
     if args.json:

@@ -266,9 +266,9 @@ def test_speculated_levels_bound():
     past the maximum depth."""
     from larc_jax.engine.certify import SPECULATE_INTERVALS, speculated_levels
 
-    assert SPECULATE_INTERVALS == 64
-    assert speculated_levels(1, 0, 9) == 5  # 63 intervals: depths 0-5
+    assert SPECULATE_INTERVALS == 256
+    assert speculated_levels(1, 0, 9) == 7  # 255 intervals: depths 0-7
     assert speculated_levels(1, 7, 9) == 2  # not past depth 9
-    assert speculated_levels(20, 3, 9) == 1  # 60 intervals
-    assert speculated_levels(22, 3, 9) == 0  # 66 > 64
+    assert speculated_levels(85, 3, 9) == 1  # 255 intervals
+    assert speculated_levels(86, 3, 9) == 0  # 258 > 256
     assert speculated_levels(1, 9, 9) == 0

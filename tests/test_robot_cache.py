@@ -187,3 +187,40 @@ def test_certify_refuses_bad_input_before_importing_jax(bad, message, tmp_path):
     for _ in range(2):
         last, err = _cli_imports(args, tmp_path / "cache")
         assert last == "RC 2 False" and message in err, err
+
+
+def test_current_sha256_hashes_again_whenever_the_status_changed(tmp_path, monkeypatch):
+    import os
+    import time
+
+    path = tmp_path / "part.stl"
+    path.write_bytes(b"a" * 100)
+    from larc_jax import io as io_module
+
+    hashes = []
+    real = io_module.file_sha256
+    monkeypatch.setattr(io_module, "file_sha256", lambda p, what="file": hashes.append(p) or real(p, what))
+    monkeypatch.setattr(io_module, "_CURRENT", {})
+    # Just written: not settled, so not remembered; every call hashes.
+    first = io_module.current_sha256(path)
+    assert io_module.current_sha256(path) == first and len(hashes) == 2 and not io_module._CURRENT
+    # Settled (the rule switched off here): remembered, and a second call reads nothing.
+    monkeypatch.setattr(io_module, "UNSETTLED_NS", -1)
+    io_module.current_sha256(path)
+    assert io_module.current_sha256(path) == first and len(hashes) == 3
+    # Same size, modification time put back: the change time still moved, so it is hashed again.
+    st = path.stat()
+    time.sleep(0.05)  # past the kernel clock's tick (the settled rule covers a write within it)
+    path.write_bytes(b"b" * 100)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+    assert io_module.current_sha256(path) != first and len(hashes) == 4
+    # Replaced by another file (new inode), and removed: never the remembered hash.
+    time.sleep(0.05)
+    other = tmp_path / "other.stl"
+    other.write_bytes(b"c" * 100)
+    os.replace(other, path)
+    assert io_module.current_sha256(path) == real(path) and len(hashes) == 5
+    path.unlink()
+    with pytest.raises(LarcInputError, match="does not exist|No such file"):
+        io_module.current_sha256(path)

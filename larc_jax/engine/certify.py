@@ -121,12 +121,15 @@ def _leaf_table(names: _Names, traj, depth, index, a, b, rec: LeafRecord) -> Lea
     )
 
 
-SPECULATE_INTERVALS = 64
+SPECULATE_INTERVALS = 256
 """A frontier of fewer intervals is evaluated together with its descendants down as many levels
-as fit in this many intervals, in one call (:func:`_larc_batched`): a call costs ~0.5 ms on the
-host whatever its size (dispatch, padding to a bucket of at least 4, the leaf bookkeeping),
-about 50 intervals' evaluation, so a small frontier (one trajectory certified alone: 1, 2,
-4, ... intervals at the first depths) is cheaper evaluated ahead than a level at a time."""
+as fit in this many intervals, in one call (:func:`_larc_batched`). A call has a fixed cost on
+the host and in XLA's dispatch whatever its size (measured on PIPER's Stage B scenes, 2 CPU
+cores: the all-pairs capsule kernel takes 0.20 ms for 4 intervals, 0.66 ms for 64, 1.77 ms for 256), so
+a small frontier (one trajectory certified alone: 1, 2, 4, ... intervals at the first depths)
+is cheaper evaluated ahead than a level at a time. The value was chosen by the median time of
+24 Stage B trajectories certified one per call: 5.44 / 4.61 / 4.33 / 4.99 ms with capsules and
+44.0 / 39.3 / 32.3 / 32.5 ms with the hull cascade for 64 / 128 / 256 / 512."""
 
 
 def speculated_levels(frontier: int, depth: int, max_depth: int) -> int:

@@ -33,6 +33,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import LarcInputError
+from ..io import current_sha256, file_sha256  # re-exported: the model's file hashes
 from .robot import CONTINUOUS_LIMIT_RAD, JointType, Robot
 from .urdf_tree import UrdfTree
 
@@ -44,16 +45,9 @@ __all__ = [
     "package_dirs_for",
     "resolve_uri",
     "file_sha256",
+    "current_sha256",
 ]
 
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """SHA-256 of a file's bytes, read as every user file is (:func:`~larc_jax.io.read_input_bytes`:
-    a regular file, at most the input cap; else :class:`LarcInputError`)."""
-    from ..io import read_input_bytes
-
-    return hashlib.sha256(read_input_bytes(path)).hexdigest()
 
 
 def piper_description_dir() -> Path:
@@ -120,9 +114,9 @@ def load_urdf_model(
 ) -> UrdfTree:
     """Parse a URDF with yourdfpy, resolving ``package://`` URIs; checks every mesh file exists.
 
-    The file is read once (:func:`~larc_jax.io.read_input_bytes`) and those bytes are parsed:
-    the parse is cached per process, keyed by the SHA-256 of the bytes, the resolved path and
-    package folders, so that loading a robot and then reading its collision geometry
+    The file is hashed (:func:`current_sha256`: again whenever its status changed) and the bytes
+    with that hash are parsed: the parse is cached per process, keyed by the SHA-256 of the
+    bytes, the resolved path and package folders, so that loading a robot and then reading its collision geometry
     (:mod:`larc_jax.enclosure.meshes`) parses the file once, and a changed file (even one of the
     same size and modification time) is parsed again; with the compilation cache on, the parse
     is also kept on disk by that SHA-256 (:func:`_parse_urdf`). With ``sha256`` (a robot's
@@ -131,20 +125,17 @@ def load_urdf_model(
     (:class:`~larc_jax.model.urdf_tree.UrdfTree`, shared and frozen). Raises :class:`LarcInputError` naming the file and the link for an unreadable or
     changed URDF or a missing mesh.
     """
-    from ..io import read_input_bytes
-
     urdf_path = Path(urdf_path)
     if not urdf_path.is_file():
         raise LarcInputError(f"{urdf_path}: URDF file does not exist")
-    data = read_input_bytes(urdf_path, "URDF file")
-    digest = hashlib.sha256(data).hexdigest()
+    digest = current_sha256(urdf_path, "URDF file")
     if sha256 is not None and digest != sha256:
         raise LarcInputError(
             f"{urdf_path}: the URDF changed after the robot was loaded from it (SHA-256 now "
             f"{digest[:16]}..., the robot's {sha256[:16]}...); load the robot again"
         )
     dirs = package_dirs_for(urdf_path, package_dirs)
-    model = _parse_urdf(str(urdf_path.resolve()), digest, tuple(sorted(dirs.items())), data)
+    model = _parse_urdf(str(urdf_path.resolve()), digest, tuple(sorted(dirs.items())))
     for link in model.links:  # checked on every call: a mesh may vanish after the parse
         for col in link.collisions:
             mesh = col.geometry.mesh if col.geometry is not None else None
@@ -159,12 +150,13 @@ def load_urdf_model(
 
 
 @functools.lru_cache(maxsize=8)
-def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple, data: bytes) -> UrdfTree:
-    """What the loaders read of the yourdfpy parse of ``data`` (the bytes of ``urdf_path``, hashed
-    to ``sha256``) behind :func:`load_urdf_model`: :mod:`larc_jax.model.urdf_tree`, kept on disk
-    by the bytes' SHA-256 while the compilation cache is on (:mod:`larc_jax.model.robot_cache`)."""
+def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple) -> UrdfTree:
+    """What the loaders read of the yourdfpy parse of the bytes of ``urdf_path`` that hash to
+    ``sha256`` (behind :func:`load_urdf_model`): :mod:`larc_jax.model.urdf_tree`, kept on disk
+    by that SHA-256 while the compilation cache is on (:mod:`larc_jax.model.robot_cache`)."""
     import io
 
+    from ..io import read_input_bytes
     from .robot_cache import keep_text, kept_text
     from .urdf_tree import tree_from_json, tree_to_json, urdf_tree
 
@@ -175,6 +167,9 @@ def _parse_urdf(urdf_path: str, sha256: str, package_dirs: tuple, data: bytes) -
             return tree_from_json(text)
         except (ValueError, KeyError, TypeError):  # unreadable: parse again
             pass
+    data = read_input_bytes(urdf_path, "URDF file")
+    if hashlib.sha256(data).hexdigest() != sha256:
+        raise LarcInputError(f"{urdf_path}: the URDF changed while it was being read; load the robot again")
     import yourdfpy
 
     dirs = dict(package_dirs)
