@@ -237,11 +237,12 @@ def tightness_rows() -> list[tuple[Path, Path]]:
             for r in plan.trajectories()]
 
 
-_MANIFEST_RUN = """import json, resource, sys, time
+_MANIFEST_RUN = """import json, sys, time
+from experiments.bench_rss import peak_rss_mb
 from larc_jax.drivers.cli import main
 t0 = time.perf_counter()
 rc = main(sys.argv[1:])
-print(json.dumps(dict(rc=rc, s=time.perf_counter() - t0, peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))
+print(json.dumps(dict(rc=rc, s=time.perf_counter() - t0, peak_rss_mb=peak_rss_mb())))
 """
 
 

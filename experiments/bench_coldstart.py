@@ -1,6 +1,8 @@
 """Benchmark: the cold start of ``larc certify`` on one file, as a fresh process.
 
-    python -m experiments.bench_coldstart [--repeats 3] [--json results/bench/coldstart_cpu.json]
+    python -m experiments.bench_coldstart [--repeats 3] [--json FILE]
+
+(``python -m experiments.bench`` runs it too: its ``coldstart`` section, which the README quotes.)
 
 Runs ``larc -v certify configs/examples/reach_left.yaml --scene configs/examples/cell.yaml`` as a
 new process, each time timing the whole process (wall clock, from ``subprocess`` start to exit):
