@@ -214,6 +214,83 @@ def test_select_and_combine_on_named_cases():
     assert not passed[0] and g[0] == pytest.approx(-0.001)  # the hull fails too: max of the two excesses
 
 
+def test_combine_picks_the_deciding_part_as_a_loop_does():
+    """Random intervals with two parts per link, ties and NaN: the recorded (g, guard) of a leaf
+    the hull decides are those of its (link, box)'s part with the least excess, the first in triple
+    order on a tie, the first NaN if any (np.argmin over that pair's triples, written as a loop)."""
+    rng = np.random.default_rng(7)
+    links = Links(of_capsule=np.array([0, 0, 1, 2]), of_part=np.array([0, 1, 1, 2, 2, 0]), n_links=3)
+    F, B = 300, 3
+    g_cap = rng.choice([-0.004, -0.002, 0.001, 0.02], (F, 4, B))
+    g_up = np.full((F, 6, B), 0.5)
+    guard_c = np.full((F, 4), 1e-4)
+    tried, triples = select_pairs(links, g_cap - guard_c[:, :, None], g_up)
+    g_hull = rng.choice([-0.003, 0.001, 0.002, 0.002, 0.005, np.nan], len(triples), p=[.2, .2, .2, .2, .15, .05])
+    guard_hull = rng.choice([1e-4, 2e-4], len(triples))
+    g, guard, cap, box, passed = combine(links, g_cap, guard_c, tried, triples, g_hull, guard_hull)
+    # The loop: the deciding (link, box) from the rule, then its parts' least excess.
+    i, p, k = triples.T
+    ex = g_hull - guard_hull
+    checked = 0
+    for f in range(F):
+        sel = np.flatnonzero(i == f)
+        if not len(sel):
+            continue
+        for l in range(3):
+            for kb in range(B):
+                on = sel[(links.of_part[p[sel]] == l) & (k[sel] == kb)]
+                if len(on) and box[f] == kb and links.of_capsule[cap[f]] == l and not math.isnan(g[f]):
+                    t = on[np.argmin(ex[on])]
+                    if ex[t] > (g_cap[f, cap[f], kb] - guard_c[f, cap[f]]):  # the hull decided
+                        assert (g[f], guard[f]) == (g_hull[t], guard_hull[t]), f
+                        checked += 1
+    assert checked > 50
+    assert np.array_equal(passed, g > guard)
+
+
+def test_vertex_classes_evaluate_each_pair_as_the_whole_table(model):
+    """Pairs run a call per group of vertex classes, on the table cut to the group's columns:
+    every part's vertices are in its call's columns, the clearances equal the whole table's bit
+    for bit (first axis and full search), and come back in the pairs' order."""
+    from larc_jax.engine import batch as batch_module
+    from larc_jax.enclosure.hull import by_vertex_class
+
+    robot, capsules, hulls = model
+    classes = hulls.vertex_classes()
+    K = hulls.vertices.shape[1]
+    assert classes[-1] == K and list(classes) == sorted(set(classes)) and len(classes) <= 3
+    assert len(classes) > 1  # PIPER's parts have 122..691 vertices
+    rng = np.random.default_rng(5)
+    n = 300
+    part = rng.integers(0, hulls.n_parts, n)
+    T = np.concatenate([np.linalg.qr(rng.normal(size=(n, 3, 3)))[0], rng.uniform(-0.3, 0.3, (n, 3, 1))], axis=2)
+    lo = rng.uniform(-0.5, 0.3, (n, 3))
+    boxes = lj.AlignedBoxes(lo=lo, hi=lo + rng.uniform(0.01, 0.2, (n, 3)), mask=np.ones(n, bool))
+    mb = rng.uniform(0, 0.01, n)
+    calls = []
+
+    def run(kernel):
+        def call(h, idx):
+            calls.append(h.vertices.shape[1])
+            assert all(hulls.n_vertices[p] <= h.vertices.shape[1] for p in part[idx])
+            items = jax.tree.map(lambda x: x[idx], boxes)
+            return np.asarray(kernel(h, part[idx], T[idx], items, mb[idx], np.float64(MARGIN)))
+        return call
+
+    with jax.enable_x64(True):
+        for kernel in (batch_module._hull_first_axis, batch_module._hull_pairs):
+            whole = np.asarray(kernel(hulls, part, T, boxes, mb, np.float64(MARGIN)))
+            calls.clear()
+            split = by_vertex_class(hulls, part, run(kernel), (64, 256, 1024))
+            assert len(calls) > 1 and min(calls) < K
+            np.testing.assert_array_equal(split, whole)
+        # Few pairs of a small class ride with a larger class's call (one call of 64 is cheaper).
+        calls.clear()
+        small = np.array([int(np.argmin(hulls.n_vertices)), int(np.argmax(hulls.n_vertices))])
+        by_vertex_class(hulls, small, run(batch_module._hull_first_axis), (64, 256, 1024))
+        assert calls == [K]
+
+
 def test_soundness_against_dense_sampling_of_the_hulls(model, dataset, larc):
     """Whenever the cascade certifies, the link hulls (which contain the meshes) stay more than
     rho from every box at 2 kHz (python-fcl distance of the hull meshes). The boxes are near

@@ -166,6 +166,50 @@ def test_kept_hull_parts_are_the_built_ones(kept_in, piper_dir, tmp_path, monkey
     assert len(calls) == 2
 
 
+def test_a_mesh_rewritten_during_the_hull_build_is_built_again(kept_in, piper_dir, tmp_path, monkeypatch):
+    import shutil
+
+    from larc_jax.enclosure import hull
+
+    desc = tmp_path / "piper_description"
+    shutil.copytree(piper_dir, desc)
+    urdf = desc / "urdf" / "piper_description.urdf"
+    robot = load_robot(urdf)
+    mesh = desc / "meshes" / "link2.STL"
+    original = mesh.read_bytes()
+    edited = b"edited" + original[6:]  # the binary STL's free-text header: same triangles
+    real = hull.build_parts
+    calls = []
+
+    def rewriting(*a, **k):  # the file changes after its bytes were hashed and read
+        parts = real(*a, **k)
+        calls.append(1)
+        if len(calls) == 1:
+            mesh.write_bytes(edited)
+        return parts
+
+    monkeypatch.setattr(hull, "_CACHE", {})
+    monkeypatch.setattr(hull, "build_parts", rewriting)
+    hull.hull_model(robot, (), 0.001)
+    assert len(calls) == 2  # the first build belongs to no key: built again
+    (entry,) = (kept_in / "hull_parts").glob("*.npz")  # only the second build was kept ...
+    (key,) = hull._CACHE  # ... in memory under the hashes the second build read
+    import hashlib
+
+    (link2,) = [h for path, h in key[0][1:] if Path(path).name == "link2.STL"]
+    assert link2 == hashlib.sha256(edited).hexdigest()
+
+    def always(*a, **k):  # a file that never settles: refused, naming the robot
+        mesh.write_bytes(original if mesh.read_bytes() == edited else edited)
+        return real(*a, **k)
+
+    hull._CACHE.clear()
+    monkeypatch.setattr(hull, "build_parts", always)
+    with pytest.raises(ValueError, match="kept changing while their hulls were built"):
+        hull.hull_model(robot, (("link2", (1.0, 0.0, 0.0), 0.1),), 0.001)
+    assert len(list((kept_in / "hull_parts").glob("*.npz"))) == 1 and not hull._CACHE
+
+
 def _cli_imports(args: list[str], cache: Path) -> tuple[int, str]:
     code = ("import sys\nfrom larc_jax.drivers.cli import main\nrc = main(%r)\n"
             "print('RC', rc, 'jax' in sys.modules)\n") % (args,)

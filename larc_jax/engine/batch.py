@@ -1,7 +1,8 @@
 """Host-side batching for the JAX certifiers: padded arrays, size classes, bucketed calls.
 
 A dataset of trajectories (each with its own waypoint count, duration and scene) becomes one
-:class:`Batch`: splines padded to a common knot count, scenes stacked into one obstacle set
+:class:`Batch`: splines padded to a common knot count (their range-maximum tables ragged,
+each its own length: :mod:`larc_jax.model.spline_batch`), scenes stacked into one obstacle set
 padded to a common item count (masked; :func:`~larc_jax.obstacles.stack_scenes`), per-trajectory
 horizons. :meth:`Batch.evaluate` runs the interval test on any list
 of (trajectory, depth, index) intervals in jitted, vmapped calls whose sizes are padded to a
@@ -32,8 +33,9 @@ from ..leaf.cascade import Links, PairDetails, combine, hull_pair_clearance, int
 from ..leaf.clearance import BROAD_PHASE_K
 from ..compilation import cached_kernel, tracked_call
 from ..enclosure.capsule import CapsuleModel
-from ..enclosure.hull import HullModel
-from ..model.hermite import HermiteSpline, SplineRow, pad_waypoints
+from ..enclosure.hull import HullModel, by_vertex_class
+from ..model.hermite import pad_waypoints
+from ..model.spline_batch import SplineBatch, SplineRow, spline_batch
 from ..leaf.interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
 from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
 from ..lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
@@ -67,6 +69,13 @@ because those kernels take seconds to compile; a small call padded to 64 costs a
 counts run in 1024-chunks: a GJK pair costs ~30 us on a CPU core, so padding a remainder to 4096
 (the former largest size) cost more than the extra calls (on Stage B, 57 % of the padded pairs
 were real)."""
+
+
+PAIR_BUCKETS = (16, 32, 64, 128, 256, 512, 1024)
+"""Sizes of the cascade's step-2 calls (:func:`~larc_jax.leaf.cascade.interval_pairs`, ~1.2 s to
+compile each): a ladder of 2, because one trajectory's open frontier is typically a few dozen to
+a few hundred intervals (on Stage B one at a time, the median call held 119: 4.1 ms padded to 256,
+2.6 ms at 128)."""
 
 
 PAIR_BYTES = 512
@@ -184,12 +193,6 @@ def _swept_parts(hulls, part, T_mid, R_ends, t_ends, items, motion_b, swept_e, m
         hulls, part, T_mid, R_ends, t_ends, items, motion_b, swept_e, margin)
 
 
-_build_splines = jax.jit(jax.vmap(HermiteSpline.from_waypoints))
-_build_speed_splines = jax.jit(jax.vmap(functools.partial(HermiteSpline.from_waypoints, accel=False)))
-"""Splines without the acceleration table, which only the swept stage reads: building it cost
-as much as the speed table (on Stage B the two took 40 % of a warm fixed-fine run)."""
-
-
 def _geometry(robot: Robot, capsules: CapsuleModel, dtype):
     """Robot and capsule arrays in the geometry dtype; radii and motion constants stay float64
     (they enter the float64 sums, budget P3/G4)."""
@@ -216,7 +219,7 @@ class Batch:
 
     robot: Robot
     capsules: CapsuleModel
-    splines: HermiteSpline
+    splines: SplineBatch
     """Splines on rebased knots (float64), padded."""
     bounds: RoundingBounds
     """Per-trajectory rounding bounds, stacked (leading axis = trajectory)."""
@@ -387,13 +390,17 @@ class Batch:
         def clear_parts(triples):
             i, p, k = triples.T
             leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one item per triple
-            g = self._bucketed(
-                lambda pp, Tm, R, t, mb, e, *it: tracked_call(
-                    parts_call, (self.hulls, pp, Tm, R, t, jax.tree.unflatten(tree, it), mb, e, self.margin),
-                    on_compile),
-                [p, d.T_mid[i, p], d.R_ends[i, p], d.t_ends[i, p], d.motion_b[i, p], d.swept_e[i, p], *leaves],
-                buckets=CASCADE_BUCKETS)
-            return g, np.asarray(self.bounds.hull_guard_m)[tr][i, p]
+
+            def run(hulls, idx):
+                ii, pi = i[idx], p[idx]
+                return self._bucketed(
+                    lambda pp, Tm, R, t, mb, e, *it: tracked_call(
+                        parts_call, (hulls, pp, Tm, R, t, jax.tree.unflatten(tree, it), mb, e, self.margin),
+                        on_compile),
+                    [pi, d.T_mid[ii, pi], d.R_ends[ii, pi], d.t_ends[ii, pi], d.motion_b[ii, pi], d.swept_e[ii, pi],
+                     *(x[idx] for x in leaves)], buckets=CASCADE_BUCKETS)
+
+            return by_vertex_class(self.hulls, p, run, CASCADE_BUCKETS), np.asarray(self.bounds.hull_guard_m)[tr][i, p]
 
         g, guard, cap, box, _ = swept_record(links, d.g_capsule, G_c, self.hulls is not None, clear_capsules,
                                              clear_parts)
@@ -401,14 +408,19 @@ class Batch:
 
     def _hull_round(self, kernel, d: PairDetails, tr, triples, on_compile) -> np.ndarray:
         """One round of step 4 (``kernel``: :data:`_hull_first_axis` or :data:`_hull_pairs`) on the
-        ``(interval, part, obstacle)`` triples of the intervals ``tr``."""
+        ``(interval, part, obstacle)`` triples of the intervals ``tr``, a call per vertex class."""
         call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
         i, p, k = triples.T
         leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one obstacle per triple
-        return self._bucketed(
-            lambda pp, T, mb, *it: tracked_call(call, (self.hulls, pp, T, jax.tree.unflatten(tree, it), mb,
-                                                       self.margin), on_compile),
-            [p, d.T_part[i, p], d.motion_b[i, p], *leaves], buckets=CASCADE_BUCKETS)
+
+        def run(hulls, idx):
+            return self._bucketed(
+                lambda pp, T, mb, *it: tracked_call(call, (hulls, pp, T, jax.tree.unflatten(tree, it), mb,
+                                                           self.margin), on_compile),
+                [p[idx], d.T_part[i[idx], p[idx]], d.motion_b[i[idx], p[idx]], *(x[idx] for x in leaves)],
+                buckets=CASCADE_BUCKETS)
+
+        return by_vertex_class(self.hulls, p, run, CASCADE_BUCKETS)
 
     def _hull_stage(self, tr, a, b, on_compile) -> LeafRecord:
         """The hull stage (steps 2-5 of larc_jax.leaf.cascade) on the intervals ``(tr, a, b)``."""
@@ -418,7 +430,7 @@ class Batch:
             lambda t, sc, x, y: tracked_call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
                                                    self.obstacles, self.bounds, t, sc, x, y, self.margin),
                                       on_compile),
-            [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
+            [tr, self.scene_of[tr], ar, br], buckets=PAIR_BUCKETS))
         links = Links.of(self.capsules, self.hulls)
         G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
         G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
@@ -459,10 +471,10 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     scene_list = [next(s for s in scenes if id(s) == u) for u in unique]
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
     obstacles = stack_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)), dtype)
-    with jax.enable_x64(True):
-        build = _build_splines if swept is not None else _build_speed_splines  # the swept stage reads accelerations
-        splines = tracked_call(build, tuple(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
-                               on_compile)
+    splines = spline_batch(*(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
+                           n_knots=np.array([t.n_waypoints for t in trajectories] + [trajectories[0].n_waypoints] * n_pad),
+                           accel=swept is not None,  # the swept stage reads accelerations
+                           call=lambda fn, args: tracked_call(fn, args, on_compile))
     robot_g, capsules_g = _geometry(robot, capsules, dtype)
     return Batch(
         robot=robot_g, capsules=capsules_g, splines=splines, bounds=stacked,

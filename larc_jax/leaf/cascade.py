@@ -282,13 +282,15 @@ def combine(links: Links, g_capsule: np.ndarray, guard_capsule: np.ndarray, trie
     guard = guard_capsule[rows, capsule].astype(np.float64)
     hull_won = use_hull.reshape(F, -1)[rows, best]
     if hull_won.any() and len(triples):
-        # The deciding part: the one with the least excess on that (interval, link, box).
+        # The deciding part: the one with the least excess on that (interval, link, box), ties
+        # and NaN as np.argmin takes them (the first NaN, else the first least, in triple order).
         i, p, k = triples.T
         ex = g_hull - guard_hull
-        for f in np.flatnonzero(hull_won):
-            sel = np.flatnonzero((i == f) & (links.of_part[p] == link[f]) & (k == box[f]))
-            t = sel[np.argmin(ex[sel])]
-            g[f], guard[f] = g_hull[t], guard_hull[t]
+        on = np.flatnonzero(hull_won[i] & (links.of_part[p] == link[i]) & (k == box[i]))
+        nan_ex = np.isnan(ex[on])
+        order = on[np.lexsort((on, np.where(nan_ex, 0.0, ex[on]), ~nan_ex, i[on]))]
+        first = order[np.r_[True, i[order][1:] != i[order][:-1]]]  # one triple per interval
+        g[i[first]], guard[i[first]] = g_hull[first], guard_hull[first]
     g = np.where(nan, np.nan, g)
     return g, guard, capsule, box, g > guard
 

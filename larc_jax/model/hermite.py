@@ -76,7 +76,6 @@ from .hermite_reference import accel_max_np, evaluate_np, speed_max_np
 
 __all__ = [
     "HermiteSpline",
-    "SplineRow",
     "num_table_levels",
     "pad_waypoints",
     "batch_from_waypoints",
@@ -214,8 +213,8 @@ class HermiteSpline:
         """``K`` (static, from the array shape; padding segments included)."""
         return self.t_knots.shape[-1] - 1
 
-    # Element access used by the single-item kernels. :class:`SplineRow` offers the same
-    # methods for one spline of a batch, read in place.
+    # Element access used by the single-item kernels. :class:`~larc_jax.model.spline_batch.SplineRow`
+    # offers the same methods for one spline of a batch, read in place.
     def knots(self):
         return self.t_knots
 
@@ -228,6 +227,9 @@ class HermiteSpline:
 
     def accel_table_at(self, level, i):
         return self.accel_table[level, i]
+
+    def has_accel(self) -> bool:
+        return self.accel_table is not None
 
     @property
     def num_joints(self) -> int:
@@ -259,44 +261,6 @@ class HermiteSpline:
         qd = qd.astype(dtype)
         return cls(t_knots=t, q_knots=q, qd_knots=qd, speed_table=_build_table(t, q, qd, segment_speed_max),
                    accel_table=_build_table(t, q, qd, segment_accel_max) if accel else None)
-
-
-@pytree_dataclass
-@dataclasses.dataclass(frozen=True)
-class SplineRow:
-    """Spline ``k`` of a batched :class:`HermiteSpline`, read in place.
-
-    The single-item kernels (:func:`evaluate`, :func:`speed_max`) only read a spline through
-    ``knots()``, ``knot(i)`` and ``table(level, i)``. Mapped over intervals with ``jax.vmap``,
-    ``batch[k]`` would first copy each interval's whole spline (all knots and the whole sparse
-    table: hundreds of KB per interval for long trajectories); a row reads just the elements
-    the kernel touches (two-index gathers), which keeps the interval kernel compute-bound.
-    """
-
-    batch: HermiteSpline
-    k: jax.Array
-    """Index of the spline in the batch (scalar int)."""
-
-    @property
-    def num_segments(self) -> int:
-        return self.batch.t_knots.shape[-1] - 1
-
-    @property
-    def num_joints(self) -> int:
-        return self.batch.q_knots.shape[-1]
-
-    def knots(self):
-        return self.batch.t_knots[self.k]
-
-    def knot(self, i):
-        b = self.batch
-        return b.t_knots[self.k, i], b.q_knots[self.k, i], b.qd_knots[self.k, i]
-
-    def table(self, level, i):
-        return self.batch.speed_table[self.k, level, i]
-
-    def accel_table_at(self, level, i):
-        return self.batch.accel_table[self.k, level, i]
 
 
 # ------------------------------------------------------------------------------------------
@@ -415,8 +379,7 @@ def accel_max(spline: HermiteSpline, a, b):
     preconditions and the range query of :func:`speed_max` (eq. (**) of the module docstring is
     linear on each segment, so each touched segment's maximum is at its clipped ends). The
     spline must hold its :attr:`~HermiteSpline.accel_table`."""
-    batch = spline.batch if isinstance(spline, SplineRow) else spline
-    if batch.accel_table is None:
+    if not spline.has_accel():
         raise ValueError("hermite.accel_max: the spline was built without its acceleration table "
                          "(HermiteSpline.from_waypoints(..., accel=True))")
     return _range_max(spline, a, b, segment_accel_max, spline.accel_table_at)
