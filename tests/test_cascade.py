@@ -278,7 +278,7 @@ def test_vertex_classes_evaluate_each_pair_as_the_whole_table(model):
         return call
 
     with jax.enable_x64(True):
-        for kernel in (batch_module._hull_first_axis, batch_module._hull_pairs):
+        for kernel in (batch_module.hull_first_axis, batch_module.hull_pairs):
             whole = np.asarray(kernel(hulls, part, T, boxes, mb, np.float64(MARGIN)))
             calls.clear()
             split = by_vertex_class(hulls, part, run(kernel), (64, 256, 1024))
@@ -287,7 +287,7 @@ def test_vertex_classes_evaluate_each_pair_as_the_whole_table(model):
         # Few pairs of a small class ride with a larger class's call (one call of 64 is cheaper).
         calls.clear()
         small = np.array([int(np.argmin(hulls.n_vertices)), int(np.argmax(hulls.n_vertices))])
-        by_vertex_class(hulls, small, run(batch_module._hull_first_axis), (64, 256, 1024))
+        by_vertex_class(hulls, small, run(batch_module.hull_first_axis), (64, 256, 1024))
         assert calls == [K]
 
 
@@ -323,7 +323,7 @@ def test_two_rounds_decide_as_the_full_search(dataset, model, larc, monkeypatch)
     import larc_jax.engine.batch as batch_module
 
     robot, capsules, _ = model
-    monkeypatch.setattr(batch_module, "_hull_first_axis", batch_module._hull_pairs)
+    monkeypatch.setattr(batch_module, "hull_first_axis", batch_module.hull_pairs)
     full = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
     assert (full.certified == larc.certified).all()
     assert (full.frontier == larc.frontier).all()

@@ -132,7 +132,7 @@ def _set_leaf(key, k, f):
     ("time shifted by one ulp", _set_leaf("t0", 1, lambda s: hexf(np.nextafter(unhexf(s), 0.0))), "dyadic piece"),
     ("depth edited", _set_leaf("depth", 0, lambda d: d + 1), "dyadic piece"),
     ("guard input edited", lambda doc: doc["trajectories"][0]["rounding"].update(tau_s=hexf(0.0)), "rounding input"),
-    ("margin raised", lambda doc: doc["parameters"].update(margin_m=0.0105), "differs from the recomputed"),
+    ("margin raised", lambda doc: doc["parameters"].update(margin_m=0.0105), "exceeds the recomputed"),
     ("margin raised a lot", lambda doc: doc["parameters"].update(margin_m=0.5), "fails the reference test"),
     ("false claim", lambda doc: doc["trajectories"][1].update(certified=True), "sweep_front"),
     ("mesh hash edited", lambda doc: doc["robot"]["geometry"]["link6"][0].update(sha256="0" * 64), "collision geometry"),

@@ -124,14 +124,14 @@ def test_exported_kernel_is_the_same_computation(tmp_path, monkeypatch, robot, c
         tr = np.zeros(n, np.int64)
         depth = rng.integers(0, 8, n)
         index = np.array([rng.integers(0, 2**d) for d in depth])
-        args = b._kernel_args(tr, *b.endpoints(tr, depth, index))
+        args = b.kernel_args(tr, *b.endpoints(tr, depth, index))
         import jax
 
         with jax.enable_x64(True):
-            ref = [np.asarray(x) for x in B._evaluate_intervals(*args)]
-            first = [np.asarray(x) for x in compilation.cached_kernel_call(B._evaluate_intervals, args)]
+            ref = [np.asarray(x) for x in B.evaluate_intervals(*args)]
+            first = [np.asarray(x) for x in compilation.cached_kernel_call(B.evaluate_intervals, args)]
             compilation._LOADED.clear()
-            loaded = [np.asarray(x) for x in compilation.cached_kernel_call(B._evaluate_intervals, args)]
+            loaded = [np.asarray(x) for x in compilation.cached_kernel_call(B.evaluate_intervals, args)]
         for r, f, l in zip(ref, first, loaded):
             np.testing.assert_array_equal(r, f)
             np.testing.assert_array_equal(r, l)

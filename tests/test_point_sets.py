@@ -21,7 +21,7 @@ from larc_jax.errors import LarcInputError
 from larc_jax.model.point_sets import PointSets, convex_pieces
 from larc_jax.model.scene import Scene, read_scene, scene_from_dict
 from larc_jax.obstacles import ConvexShapes, scene_obstacles, stack_scenes
-from tests.capsule_audit import capsule_clearance, last_certified
+from tests.capsule_audit import bracket_fcl, capsule_clearance, last_certified
 
 EX = Path(__file__).resolve().parent.parent / "configs" / "examples"
 
@@ -204,7 +204,11 @@ def test_bounds_never_exceed_fcl_or_the_points(values, dtype):
 # ---------------------------------------------------------------------------------------------- end to end
 
 def test_camera_cell_certifies_verifies_and_refuses_a_changed_cloud(robot, capsules, tmp_path):
+    import json
+
     from larc_jax import certify, verify_certificate, write_certificate
+    from larc_jax.products.verify import Refuted
+    from larc_jax.products.verify_report import report_lines
     from larc_jax.model.trajectory_files import read_trajectory
 
     for name in ("cell_camera.yaml", "bracket.stl", "table_cloud.npy", "reach_left.yaml"):
@@ -215,7 +219,18 @@ def test_camera_cell_certifies_verifies_and_refuses_a_changed_cloud(robot, capsu
     path = tmp_path / "cert.json"
     write_certificate(path, res, [traj], [scene], robot, capsules, trajectory_files=[tmp_path / "reach_left.yaml"],
                       scene_files=[tmp_path / "cell_camera.yaml"])
-    verify_certificate(path)
+    report = verify_certificate(path)
+    # What the claim assumes of the mesh and the cloud is stated, and checked against the files.
+    doc = json.loads(path.read_text())
+    assumes = ["bracket: mesh, its surface only (not a convex watertight mesh: a link wholly inside it is not seen)",
+               "table: points, each a ball of radius 0.002 m"]
+    assert doc["scenes"][0]["assumes"] == assumes and report.scene_files[0].assumes == tuple(assumes)
+    assert all(a in "\n".join(report_lines(report)) for a in assumes)
+    doc["scenes"][0]["assumes"][0] = "bracket: mesh, a solid (convex and watertight: its hull)"
+    forged = tmp_path / "forged.json"
+    forged.write_text(json.dumps(doc))
+    with pytest.raises(Refuted, match=r"scenes\[0\]\.assumes"):
+        verify_certificate(forged)
     cloud = np.load(tmp_path / "table_cloud.npy")
     cloud[0, 2] += 1e-3
     buf = io.BytesIO()
@@ -247,19 +262,7 @@ def test_bracket_slid_to_the_flip_still_clears_the_margin(robot, capsules):
     lo = last_certified(ok, 0.0, 0.1, 10)
     scene = moved(lo)
     # the truth: FCL on the bracket's triangles moved by the same amount
-    import fcl
-    import trimesh
-
-    from larc_jax.model.shapes import rotation_from_quaternion
-
-    mesh = trimesh.load(EX / "bracket.stl")
-    R = rotation_from_quaternion([0.0, 0.0, 0.9238795325112867, -0.3826834323650898])
-    V = np.asarray(mesh.vertices) @ R.T + [-0.275, 0.325, 0.0] + lo * toward
-    bvh = fcl.BVHModel()
-    bvh.beginModel(len(V), len(mesh.faces))
-    bvh.addSubModel(V, np.asarray(mesh.faces))
-    bvh.endModel()
-    clearance = capsule_clearance(robot, capsules, traj, [fcl.CollisionObject(bvh, fcl.Transform())])
+    clearance = capsule_clearance(robot, capsules, traj, [bracket_fcl(EX, lo * toward)])
     assert clearance > DEFAULT_MARGIN_M
     assert clearance - DEFAULT_MARGIN_M < 0.03, clearance  # the motion bound's slack, not a vacuous pass
     assert scene.point_sets.count == len(mine)
@@ -299,10 +302,33 @@ def test_fcl_audit_of_the_certified_move_in_the_camera_cell(robot, capsules):
           pieces=(np.array([[0, 0, np.nan]]),), owner=(0,)), r"all finite"),
     (dict(kinds=("points", "points"), names=("a", "b"), files=("f",), file_sha256=("",), radius=(0.0,)),
      r"files has 1 entries"),
+    (dict(kinds=("points",), names=("a",), files=("f",), file_sha256=("",), radius=(0.0,), solid=(True,),
+          pieces=(np.zeros((1, 3)),), owner=(0,)), r"PointSets\.solid\[0\] must be True or False \(True only for a mesh\)"),
+    (dict(kinds=("mesh",), names=("a",), files=("f",), file_sha256=("",), radius=(0.0,), solid=(True,),
+          pieces=(np.zeros((1, 3)), np.ones((1, 3))), owner=(0, 0)), r"a solid mesh is one piece"),
+    (dict(kinds=("mesh",), names=("a",), files=("f",), file_sha256=("",), radius=(0.0,), solid=(True, False)),
+     r"PointSets\.solid has 2 entries for 1 obstacles"),
 ])
 def test_point_sets_api_errors(kwargs, needle):
     with pytest.raises(LarcInputError, match=needle):
         PointSets(**kwargs)
+
+
+def test_a_convex_watertight_mesh_is_a_solid(tmp_path):
+    """A mesh trimesh finds convex and watertight is one piece, stated as a solid; a box with a
+    dent is its surface, in pieces."""
+    import trimesh
+
+    trimesh.creation.box([0.1, 0.2, 0.3]).export(tmp_path / "box.stl")
+    dented = trimesh.creation.box([0.1, 0.2, 0.3])
+    dented.vertices[0] *= 0.5  # a corner pushed inwards: not convex
+    dented.export(tmp_path / "dented.stl")
+    (tmp_path / "s.yaml").write_text("obstacles:\n  - {name: b, type: mesh, file: box.stl}\n"
+                                     "  - {name: d, type: mesh, file: dented.stl}\n")
+    ps = read_scene(tmp_path / "s.yaml").point_sets
+    assert ps.solid == (True, False) and ps.owner.count(0) == 1
+    assert ps.assumptions()[0] == "b: mesh, a solid (convex and watertight: its hull)"
+    assert ps.assumptions()[1].startswith("d: mesh, its surface only")
 
 
 def test_fcl_audit_refuses_point_sets():

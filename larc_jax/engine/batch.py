@@ -5,8 +5,11 @@ A dataset of trajectories (each with its own waypoint count, duration and scene)
 each its own length: :mod:`larc_jax.model.spline_batch`), scenes stacked into one obstacle set
 padded to a common item count (masked; :func:`~larc_jax.obstacles.stack_scenes`), per-trajectory
 horizons. :meth:`Batch.evaluate` runs the interval test on any list
-of (trajectory, depth, index) intervals in jitted, vmapped calls whose sizes are padded to a
-few buckets, so a process compiles a handful of shapes rather than one per frontier size.
+of (trajectory, depth, index) intervals in jitted, vmapped calls (:mod:`larc_jax.engine.kernels`)
+whose sizes are padded to a few buckets, so a process compiles a handful of shapes rather than
+one per frontier size. A scene of many mesh or cloud pieces is culled per subtree of intervals
+(:mod:`larc_jax.engine.cull`): each interval then meets the items its subtree kept, in lists of
+a few widths.
 
 Several devices. With more than one device (all GPUs of a machine, or CPU devices forced with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each batch of intervals is sharded
@@ -24,29 +27,28 @@ per-trajectory rounding bounds are float64.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Callable, Sequence
 
 import numpy as np
 
-from ..leaf.cascade import Links, PairDetails, combine, hull_pair_clearance, interval_pairs, select_pairs, two_rounds
-from ..leaf.clearance import BROAD_PHASE_K
 from ..compilation import cached_kernel, tracked_call
 from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel, by_vertex_class
-from ..model.hermite import pad_waypoints
-from ..model.spline_batch import SplineBatch, SplineRow, spline_batch
-from ..leaf.interval import RoundingBounds, dyadic_ends, evaluate_interval, rebase_ends
-from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
 from ..lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
-from ..obstacles import ObstacleSet, stack_scenes
-from ..obstacles.polytope import GJK_ITERATIONS
-from ..leaf.placement import place
+from ..leaf.cascade import Links, PairDetails, combine, select_pairs, two_rounds
+from ..leaf.clearance import BROAD_PHASE_K
+from ..leaf.interval import RoundingBounds, dyadic_ends, rebase_ends
+from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
+from ..leaf.self_collision import SelfPairs
+from ..leaf.swept import SweptPlacement, SweptTables, swept_links, swept_record
+from ..model.hermite import pad_waypoints
 from ..model.robot import Robot
 from ..model.scene import Scene
-from ..leaf.self_collision import SelfPairs, self_stage
-from ..leaf.swept import (SweptPlacement, SweptTables, swept_capsule_clearance, swept_links, swept_part_clearance,
-                          swept_placement, swept_record)
+from ..model.spline_batch import SplineBatch, spline_batch
+from ..obstacles import ObstacleSet, stack_scenes
+from .cull import WIDTHS, Cull, CullPart, build_cull, worth_culling
+from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_intervals_broad, hull_first_axis, hull_pairs,
+                      item_margins, self_intervals, swept_capsules, swept_intervals, swept_parts)
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
@@ -78,6 +80,12 @@ a few hundred intervals (on Stage B one at a time, the median call held 119: 4.1
 2.6 ms at 128)."""
 
 
+CULLED_BUCKETS = (32, 128, 1024)
+"""Sizes of capsule-stage calls on culled item lists (:mod:`larc_jax.engine.cull`): each list width
+compiles its own kernels, so these calls take a short ladder (a 32-call of a few items costs
+well under a millisecond)."""
+
+
 PAIR_BYTES = 512
 """Device memory per capsule-obstacle pair per interval that the all-pairs kernel may hold (XLA
 keeps each pair's candidate points; measured ~380 bytes on the CPU), rounded up."""
@@ -90,107 +98,6 @@ def size_class(n: int, minimum: int) -> int:
     trajectories, scenes) are rounded up to these so a process compiles a few shapes, not one
     per distinct size (each compiled CPU executable also holds ~100 memory mappings)."""
     return 1 << (max(int(n), int(minimum)) - 1).bit_length()
-
-
-def _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, k):
-    """Evaluate F intervals: interval i belongs to trajectory ``traj[i]`` in scene ``scene[i]``.
-    Only ``(g, guard, capsule, box, exact)`` leave the call (XLA drops the record's other fields)."""
-
-    def one(t, s, ai, bi):
-        spline = SplineRow(splines, t)  # read in place, not copied per interval
-        bnd = jax.tree.map(lambda x: x[t], bounds)
-        ev = evaluate_interval(robot, capsules, spline, obstacles.take(s), ai, bi, margin, bnd, k)
-        return ev.g, ev.guard, ev.capsule, ev.box, ev.exact
-
-    return jax.vmap(one)(traj, scene, a, b)
-
-
-@jax.jit
-def _evaluate_intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin):
-    """The interval test with every capsule-obstacle pair exact."""
-    return _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, None)
-
-
-@jax.jit
-def _evaluate_intervals_broad(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin):
-    """The interval test through the broad phase (:data:`~larc_jax.leaf.clearance.BROAD_PHASE_K` exact
-    pairs per interval); intervals whose ``exact`` is False are evaluated again all-pairs."""
-    return _intervals(robot, capsules, splines, obstacles, bounds, traj, scene, a, b, margin, BROAD_PHASE_K)
-
-
-@jax.jit
-def _interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, traj, scene, a, b, margin):
-    """Step 2 of the cascade (larc_jax.leaf.cascade) on F intervals, as ``_evaluate_intervals``: the
-    fields of :class:`~larc_jax.leaf.cascade.PairDetails` as a tuple (what the compilation cache keeps)."""
-
-    def one(k, s, ai, bi):
-        spline = SplineRow(splines, k)
-        bnd = jax.tree.map(lambda x: x[k], bounds)
-        d = interval_pairs(robot, capsules, hulls, spline, obstacles.take(s), ai, bi, margin, bnd)
-        return d.g_capsule, d.T_part, d.motion_b, d.g_upper
-
-    return jax.vmap(one)(traj, scene, a, b)
-
-
-def _hull_pairs_kernel(iterations: int):
-    """Step 4 of the cascade on T (part, obstacle) pairs (``items``: one obstacle per pair) with
-    ``iterations`` GJK steps: one jitted function per round, each with its own name (the
-    compilation cache keys kernels by name)."""
-
-    def kernel(hulls, part, T_part, items, motion_b, margin):
-        one = functools.partial(hull_pair_clearance, iterations=iterations)
-        return jax.vmap(one, in_axes=(None, 0, 0, 0, 0, None))(hulls, part, T_part, items, motion_b, margin)
-
-    kernel.__name__ = kernel.__qualname__ = f"_hull_pairs_{iterations}"
-    return jax.jit(kernel)
-
-
-_hull_first_axis = _hull_pairs_kernel(0)
-_hull_pairs = _hull_pairs_kernel(GJK_ITERATIONS)
-
-
-@jax.jit
-def _self_intervals(robot, capsules, splines, bounds, traj, a, b, self_check):
-    """The self stage (:func:`~larc_jax.leaf.self_collision.self_stage`) on F intervals of trajectories
-    ``traj``: ``self_check = (first, second, motion_a, margin_self, skip)``, ``skip``
-    (trajectories, P): the pairs proven apart for each trajectory. Returns ``(g, guard, capsule,
-    other)`` of the capsule pair with the smallest ``g - guard`` (NaN on non-finite geometry)."""
-    first, second, motion_pair, margin_self, skip = self_check
-
-    def one(k, ai, bi):
-        bnd = jax.tree.map(lambda x: x[k], bounds)
-        placed = place(robot, capsules, SplineRow(splines, k), ai, bi, bnd)
-        return self_stage(placed, capsules.radius, bnd, first, second, motion_pair, margin_self, skip[k])
-
-    return jax.vmap(one)(traj, a, b)
-
-
-@jax.jit
-def _swept_intervals(robot, capsules, hulls, tables, splines, obstacles, bounds, traj, scene, a, b, margin):
-    """Step 1 of the swept stage (:func:`~larc_jax.leaf.swept.swept_placement`) on F intervals, as
-    ``_evaluate_intervals``: the fields of :class:`~larc_jax.leaf.swept.SweptPlacement` as a tuple."""
-
-    def one(k, s, ai, bi):
-        bnd = jax.tree.map(lambda x: x[k], bounds)
-        d = swept_placement(robot, capsules, hulls, tables, SplineRow(splines, k), obstacles.take(s), ai, bi, margin,
-                            bnd)
-        return tuple(getattr(d, f.name) for f in dataclasses.fields(d))
-
-    return jax.vmap(one)(traj, scene, a, b)
-
-
-@jax.jit
-def _swept_capsules(capsules, capsule, R_ends, t_ends, items, swept_e, margin):
-    """Step 1b of the swept stage on T (capsule, obstacle) pairs (``items``: one obstacle per pair)."""
-    return jax.vmap(swept_capsule_clearance, in_axes=(None, 0, 0, 0, 0, 0, None))(
-        capsules, capsule, R_ends, t_ends, items, swept_e, margin)
-
-
-@jax.jit
-def _swept_parts(hulls, part, T_mid, R_ends, t_ends, items, motion_b, swept_e, margin):
-    """Step 2 of the swept stage on T (part, obstacle) pairs (``items``: one obstacle per pair)."""
-    return jax.vmap(swept_part_clearance, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, None))(
-        hulls, part, T_mid, R_ends, t_ends, items, motion_b, swept_e, margin)
 
 
 def _geometry(robot: Robot, capsules: CapsuleModel, dtype):
@@ -242,6 +149,8 @@ class Batch:
     """(padded trajectories, P) bool: pairs proven apart for each trajectory (:meth:`SelfPairs.skip_mask`)."""
     swept: SweptTables | None = None
     """The swept stage's chain tables (:mod:`larc_jax.leaf.swept`); None: no swept stage."""
+    cull: Cull | None = None
+    """The pieces each subtree of intervals keeps (:mod:`larc_jax.engine.cull`); None: every item."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -253,13 +162,13 @@ class Batch:
         sharding = NamedSharding(Mesh(np.array(self.devices), ("interval",)), PartitionSpec("interval"))
         return tuple(jax.device_put(x, sharding) for x in arrays)
 
-    @functools.cached_property
-    def max_chunk(self) -> int:
-        """Intervals per kernel call at most: the all-pairs interval kernel holds about
-        :data:`PAIR_BYTES` per capsule-obstacle pair, so a call may not exceed :data:`CALL_BYTES`
-        (a scene of thousands of mesh or cloud pieces gets small chunks; box scenes are never
-        limited below the largest bucket)."""
-        pairs = max(1, self.capsules.n_capsules * self.obstacles.n_items)
+    def max_chunk(self, width: int | None = None) -> int:
+        """Intervals per kernel call at most when each interval meets ``width`` items (default: a
+        whole scene): the all-pairs interval kernel holds about :data:`PAIR_BYTES` per
+        capsule-obstacle pair, so a call may not exceed :data:`CALL_BYTES` (a scene of thousands
+        of mesh or cloud pieces gets small chunks; box scenes are never limited below the largest
+        bucket)."""
+        pairs = max(1, self.capsules.n_capsules * (self.obstacles.n_items if width is None else width))
         return max(4, 1 << max(0, (CALL_BYTES // (PAIR_BYTES * pairs)).bit_length() - 1))
 
     def endpoints(self, traj: np.ndarray, depth: np.ndarray, index: np.ndarray):
@@ -270,29 +179,31 @@ class Batch:
         """Interval ends as the kernel takes them: rebased, rounded outwards (budget T1)."""
         return rebase_ends(a, b, np.asarray(self.bounds.offset_s)[traj])
 
-    def _kernel_args(self, traj, a, b):
+    def kernel_args(self, traj, a, b) -> tuple:
+        """The arguments of :func:`~larc_jax.engine.kernels.evaluate_intervals` for intervals ``(traj, a,
+        b)`` (own time axis) against every item of their scenes."""
         ar, br = self._rebased(traj, a, b)
-        return (self.robot, self.capsules, self.splines, self.obstacles, self.bounds, traj, self.scene_of[traj], ar,
-                br, self.margin)
+        return (self.robot, self.capsules, self.splines, self.obstacles, self.bounds, traj, (self.scene_of[traj],),
+                ar, br, self.margin)
 
     def cost_analysis(self, traj, depth, index, broad_phase: bool = True) -> dict:
         """XLA's cost analysis (``flops``, ``bytes accessed``, ...) of the compiled kernel for
-        these intervals (one call, no padding; the broad-phase kernel, or the all-pairs one):
-        for benchmarks."""
-        a, b = self.endpoints(traj, depth, index)
-        kernel = _evaluate_intervals_broad if broad_phase else _evaluate_intervals
+        these intervals (one call, no padding, every item; the broad-phase kernel, or the
+        all-pairs one): for benchmarks."""
+        kernel = evaluate_intervals_broad if broad_phase else evaluate_intervals
         with jax.enable_x64(True):
-            cost = kernel.lower(*self._kernel_args(traj, a, b)).compile().cost_analysis()
+            cost = kernel.lower(*self.kernel_args(traj, *self.endpoints(traj, depth, index))).compile().cost_analysis()
         return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
 
-    def _bucketed(self, call, items, on_chunk=None, buckets=BUCKETS, on_compile=None):
+    def bucketed(self, call, items, on_chunk=None, buckets=BUCKETS, width: int | None = None):
         """Run ``call(*chunk)`` over the per-item arrays ``items`` in chunks padded to
-        ``buckets`` (padding repeats the chunk's first item; its results are dropped) and
-        sharded over :attr:`devices`. Returns the outputs (a pytree of NumPy arrays)
-        concatenated over the items; ``on_chunk(n)`` after each chunk of ``n`` items."""
+        ``buckets`` (padding repeats the chunk's first item; its results are dropped), at most
+        :meth:`max_chunk` ``(width)`` long, and sharded over :attr:`devices`. Returns the outputs
+        (a pytree of NumPy arrays) concatenated over the items; ``on_chunk(n)`` after each chunk
+        of ``n`` items."""
         n = len(items[0])
         parts = []
-        buckets = tuple(s for s in buckets if s <= self.max_chunk) or buckets[:1]  # memory: PAIR_BYTES
+        buckets = tuple(s for s in buckets if s <= self.max_chunk(width)) or buckets[:1]  # memory: PAIR_BYTES
         for start in range(0, n, buckets[-1]):
             stop = min(n, start + buckets[-1])
             size = next(s for s in buckets if s >= stop - start)
@@ -306,6 +217,16 @@ class Batch:
                 on_chunk(stop - start)
         return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
 
+    def _over(self, kernel, head, sel, tr, ar, br, on_chunk=None, on_compile=None, buckets=BUCKETS):
+        """``kernel(*head, splines, obstacles, bounds, tr, sel, ar, br, margin)`` over intervals,
+        bucketed (``sel``: :meth:`selection`'s tuple, split into arrays for the padding)."""
+        call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
+        n_sel = len(sel)
+        return self.bucketed(
+            lambda t, *rest: tracked_call(call, (*head, self.splines, self.obstacles, self.bounds, t,
+                                                 tuple(rest[:n_sel]), *rest[n_sel:], self.margin), on_compile),
+            [tr, *sel, ar, br], on_chunk, buckets, width=_width(sel, self.obstacles.n_items))
+
     def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                  on_compile: Callable[[bool], None] | None = None):
         """``(a, b, record)`` for every interval (``a, b`` in the trajectory's own time axis, NumPy
@@ -313,92 +234,160 @@ class Batch:
         test, and with :attr:`self_pairs` the self test too, composed by
         :func:`~larc_jax.leaf.record.compose`; ``on_chunk(n)`` after each chunk of ``n`` intervals,
         ``on_compile(True/False)`` around a compiling call."""
-        a, b, capsule_test, self_test = self._tests(traj, depth, index, on_chunk, on_compile)
-        return a, b, compose(capsule_test, self_test)
+        return self._leaf_test(traj, depth, index, on_chunk, on_compile, cascade=False)
 
-    def _tests(self, traj, depth, index, on_chunk, on_compile):
-        """``(a, b, capsule_test, self_test)``: the :class:`~larc_jax.leaf.record.LeafRecord` of the
-        capsule stage and of the self stage (None without :attr:`self_pairs`)."""
+    def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
+                         on_compile: Callable[[bool], None] | None = None, may_bisect: np.ndarray | None = None):
+        """The leaf test (:mod:`larc_jax.leaf.record`) on every interval: ``(a, b, record)`` as
+        :meth:`evaluate`, with the hull stage (larc_jax.leaf.cascade) where
+        :func:`~larc_jax.leaf.record.needs_hull` (the capsules fail a box and the self test, if any,
+        passes), then the swept stage (:mod:`larc_jax.leaf.swept`, with :attr:`swept`) where the leaf
+        is still open; ``record.stage`` is CAPSULE, HULL, SWEPT or NONE (``stage > 0`` iff ``g >
+        guard``). Without :attr:`hulls`, no hull stage; without :attr:`swept`, no swept stage.
+
+        ``may_bisect`` (bool per interval; LARC: those above its deepest level): in a culled batch
+        (:mod:`larc_jax.engine.cull`), such an interval that meets more items than the widest
+        culled list and fails the capsule test on a pair computed exactly skips the all-pairs
+        recomputation and the later stages, and fails (it is bisected: its children are tested;
+        nothing is certified that a test did not prove)."""
+        return self._leaf_test(traj, depth, index, on_chunk, on_compile, cascade=True, may_bisect=may_bisect)
+
+    def selection(self, traj, depth, index) -> list[CullPart]:
+        """The intervals grouped by the items they are tested against: one part (every item of
+        their scene) without :attr:`cull`, else :meth:`Cull.parts <larc_jax.engine.cull.Cull.parts>`."""
+        if self.cull is None:
+            return [CullPart(np.arange(len(traj)), (self.scene_of[traj],), None)]
+        return self.cull.parts(traj, depth, index, self.scene_of)
+
+    def _leaf_test(self, traj, depth, index, on_chunk, on_compile, cascade: bool, may_bisect=None):
         a, b = self.endpoints(traj, depth, index)
+        rows, records = [], []
+        for part in self.selection(traj, depth, index):
+            r = part.rows
+            record, self_test = self._stages(traj[r], a[r], b[r], part.sel, on_chunk, on_compile, cascade,
+                                             None if may_bisect is None else np.asarray(may_bisect)[r])
+            rows.append(r)
+            records.append(compose(part.finish(record), self_test))
+        if len(records) == 1:
+            return a, b, records[0]
+        order = np.argsort(np.concatenate(rows))
+        return a, b, LeafRecord(*(np.concatenate(cols)[order] for cols in zip(*records)))
+
+    def _stages(self, traj, a, b, sel, on_chunk, on_compile, cascade: bool, may_bisect=None):
+        """``(record, self_test)`` of intervals ``(traj, a, b)`` tested against ``sel``'s items: the
+        capsule stage's record, with the hull and swept stages' where they ran (``cascade``), and
+        the self stage's (None without :attr:`self_pairs`)."""
         ar, br = self._rebased(traj, a, b)
-        run = self._kernel(_evaluate_intervals_broad if self.use_broad_phase else _evaluate_intervals, on_compile)
-        g, guard, cap, box, exact = self._bucketed(run, [traj, self.scene_of[traj], ar, br], on_chunk)
-        redo = np.flatnonzero(~exact.astype(bool))
+        head = (self.robot, self.capsules)
+        broad = self.capsules.n_capsules * _width(sel, self.obstacles.n_items) > 2 * BROAD_PHASE_K and self.use_broad_phase
+        buckets = BUCKETS if len(sel) == 1 else CULLED_BUCKETS
+        if _width(sel, self.obstacles.n_items):
+            g, guard, cap, box, exact = self._over(evaluate_intervals_broad if broad else evaluate_intervals, head,
+                                                   sel, traj, ar, br, on_chunk, on_compile, buckets)
+        else:  # nothing near (culled): no obstacle to test, the node's floor is the record
+            g, guard, cap, box, exact = np.full(len(traj), np.inf), np.zeros(len(traj)), *np.zeros((2, len(traj)), int), \
+                np.ones(len(traj), bool)
+            if on_chunk:
+                on_chunk(len(traj))
+        # LARC in a culled batch: an interval above its deepest level that meets more items than the
+        # widest list and fails on a pair computed exactly is bisected as it is (evaluate_cascade).
+        defer = np.zeros(len(traj), bool) if may_bisect is None or self.cull is None or \
+            _width(sel, self.obstacles.n_items) <= WIDTHS[-1] else may_bisect & ~(g > guard)
+        redo = np.flatnonzero(~exact.astype(bool) & ~defer)
         if len(redo):  # the broad phase could not prove its pick: every pair, exactly
-            g[redo], guard[redo], cap[redo], box[redo], _ = self._bucketed(
-                self._kernel(_evaluate_intervals, on_compile),
-                [traj[redo], self.scene_of[traj[redo]], ar[redo], br[redo]])
+            g[redo], guard[redo], cap[redo], box[redo], _ = self._over(
+                evaluate_intervals, head, _rows(sel, redo), traj[redo], ar[redo], br[redo], on_compile=on_compile,
+                buckets=BUCKETS if len(sel) == 1 else CULLED_BUCKETS[:2])  # culled: two shapes per width
         self_test = None
         if self.self_pairs is not None:
             sp = self.self_pairs
             check = (sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64), self.self_skip)
-            call = _self_intervals if len(self.devices) > 1 else cached_kernel(_self_intervals)
-            gs, gds, c1, c2 = self._bucketed(
+            call = self_intervals if len(self.devices) > 1 else cached_kernel(self_intervals)
+            gs, gds, c1, c2 = self.bucketed(
                 lambda t, x, y: tracked_call(call, (self.robot, self.capsules, self.splines, self.bounds, t, x, y,
                                                     check), on_compile), [traj, ar, br])
             self_test = self_record(gs, gds, c1.astype(np.int64), c2.astype(np.int64))
-        return a, b, box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.CAPSULE), self_test
+        record = box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.CAPSULE)
+        open_ = np.flatnonzero(needs_hull(record, self_test) & ~defer)
+        if cascade and len(open_) and (self.hulls is not None or self.swept is not None):
+            later = self._later_stages if self.cull is None else self._narrowed_stages
+            record = record.put(open_, later(traj[open_], a[open_], b[open_], _rows(sel, open_), on_compile))
+        return record, self_test
+
+    def _later_stages(self, tr, a, b, sel, on_compile) -> LeafRecord:
+        """The hull stage, then the swept stage where the leaf is still open, on intervals the
+        capsule stage left open (finite, the self test passed)."""
+        record = self._hull_stage(tr, a, b, sel, on_compile) if self.hulls is not None else None
+        if self.swept is None:
+            return record
+        open_ = np.arange(len(tr)) if record is None else np.flatnonzero(needs_hull(record, None))
+        swept = self._swept_stage(tr[open_], a[open_], b[open_], _rows(sel, open_), on_compile) if len(open_) else None
+        return swept if record is None else record if swept is None else record.put(open_, swept)
+
+    def _narrowed_stages(self, tr, a, b, sel, on_compile) -> LeafRecord:
+        """:meth:`_later_stages` in a culled batch, on the items some capsule fails alone (every
+        other item's pairs are decided by the capsules: their least ``g - guard`` joins the record
+        as :func:`~larc_jax.leaf.cascade.combine` would take it), so a wide interval's hull stage
+        costs the few items near it, not the scene. Returned in ``sel``'s item numbering."""
+        ar, br = self._rebased(tr, a, b)
+        slack, g, guard, cap, _ = self._over(item_margins, (self.robot, self.capsules), sel, tr, ar, br,
+                                             on_compile=on_compile, buckets=CULLED_BUCKETS)
+        need = ~(slack > 0)  # failing or NaN (a padding item is +inf)
+        count = need.sum(axis=1)
+        width = next((w for w in WIDTHS if w >= count.max()), slack.shape[1])
+        if width >= slack.shape[1] or not count.all():  # nothing to gain; or a row none fails (never: stay whole)
+            return self._later_stages(tr, a, b, sel, on_compile)
+        rows = np.arange(len(tr))
+        order = np.argsort(~need, axis=1, kind="stable")[:, :width]  # the needed items first, in sel's numbering
+        items = order if len(sel) == 1 else np.take_along_axis(sel[1], order, axis=1)
+        narrow = (sel[0], np.where(np.take_along_axis(need, order, axis=1), items, self.cull.pad_item))
+        sub = self._later_stages(tr, a, b, narrow, on_compile)
+        passed = np.where(need, np.inf, slack)
+        m = passed.argmin(axis=1)
+        lower = (sub.stage > 0) & (passed[rows, m] < sub.clearance_m - sub.guard_m)
+        pick = lambda new, old: np.where(lower, new, old)  # noqa: E731
+        return LeafRecord(pick(g[rows, m], sub.clearance_m), pick(guard[rows, m], sub.guard_m),
+                          pick(cap[rows, m], sub.capsule), pick(m, order[rows, sub.box]), sub.other, sub.stage)
 
     @property
     def use_broad_phase(self) -> bool:
         """The broad phase pays when a scene has more capsule-obstacle pairs than it evaluates exactly."""
         return self.capsules.n_capsules * self.obstacles.n_items > 2 * BROAD_PHASE_K
 
-    def _kernel(self, kernel, on_compile):
-        call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
-        return lambda t, sc, x, y: tracked_call(call, (self.robot, self.capsules, self.splines, self.obstacles,
-                                                       self.bounds, t, sc, x, y, self.margin), on_compile)
+    def _items(self, sel, i, k):
+        """One obstacle per ``(interval i, selected item k)`` pair: the pytree leaves and their tree."""
+        return jax.tree.flatten(self.obstacles.take((sel[0][i], k) if len(sel) == 1 else (sel[0][i], sel[1][i, k])))
 
-    def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
-                         on_compile: Callable[[bool], None] | None = None):
-        """The leaf test (:mod:`larc_jax.leaf.record`) on every interval: ``(a, b, record)`` as
-        :meth:`evaluate`, with the hull stage (larc_jax.leaf.cascade) where
-        :func:`~larc_jax.leaf.record.needs_hull` (the capsules fail a box and the self test, if any,
-        passes), then the swept stage (:mod:`larc_jax.leaf.swept`, with :attr:`swept`) where the leaf
-        is still open; ``record.stage`` is CAPSULE, HULL, SWEPT or NONE (``stage > 0`` iff ``g >
-        guard``). Without :attr:`hulls`, no hull stage; without :attr:`swept`, no swept stage."""
-        a, b, record, self_test = self._tests(traj, depth, index, on_chunk, on_compile)
-        open_ = np.flatnonzero(needs_hull(record, self_test))
-        if self.hulls is not None and len(open_):
-            record = record.put(open_, self._hull_stage(traj[open_], a[open_], b[open_], on_compile))
-        open_ = np.flatnonzero(needs_hull(record, self_test))
-        if self.swept is not None and len(open_):
-            record = record.put(open_, self._swept_stage(traj[open_], a[open_], b[open_], on_compile))
-        return a, b, compose(record, self_test)
-
-    def _swept_stage(self, tr, a, b, on_compile) -> LeafRecord:
+    def _swept_stage(self, tr, a, b, sel, on_compile) -> LeafRecord:
         """The swept stage (:mod:`larc_jax.leaf.swept`) on the intervals ``(tr, a, b)``."""
         ar, br = self._rebased(tr, a, b)
-        call = _swept_intervals if len(self.devices) > 1 else cached_kernel(_swept_intervals)
-        parts_call = _swept_parts if len(self.devices) > 1 else cached_kernel(_swept_parts)
-        caps_call = _swept_capsules if len(self.devices) > 1 else cached_kernel(_swept_capsules)
-        d = SweptPlacement(*self._bucketed(
-            lambda t, sc, x, y: tracked_call(call, (self.robot, self.capsules, self.hulls, self.swept, self.splines,
-                                             self.obstacles, self.bounds, t, sc, x, y, self.margin), on_compile),
-            [tr, self.scene_of[tr], ar, br], buckets=CASCADE_BUCKETS))
+        parts_call = swept_parts if len(self.devices) > 1 else cached_kernel(swept_parts)
+        caps_call = swept_capsules if len(self.devices) > 1 else cached_kernel(swept_capsules)
+        d = SweptPlacement(*self._over(swept_intervals, (self.robot, self.capsules, self.hulls, self.swept), sel, tr,
+                                       ar, br, on_compile=on_compile, buckets=CASCADE_BUCKETS))
         links = swept_links(self.capsules, None if self.hulls is None else Links.of(self.capsules, self.hulls))
         G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
 
         def clear_capsules(triples):
             i, c, k = triples.T
-            leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one item per triple
-            return self._bucketed(
+            leaves, tree = self._items(sel, i, k)
+            return self.bucketed(
                 lambda cc, R, t, e, *it: tracked_call(caps_call, (self.capsules, cc, R, t, jax.tree.unflatten(tree, it),
                                                                   e, self.margin), on_compile),
-                [c, d.R_capsule[i, c], d.t_capsule[i, c], d.e_capsule[i, c], *leaves], buckets=CASCADE_BUCKETS)
+                [c, d.R_capsule[i, c], d.t_capsule[i, c], d.e_capsule[i, c], *leaves], buckets=CASCADE_BUCKETS, width=1)
 
         def clear_parts(triples):
             i, p, k = triples.T
-            leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one item per triple
+            leaves, tree = self._items(sel, i, k)
 
             def run(hulls, idx):
                 ii, pi = i[idx], p[idx]
-                return self._bucketed(
+                return self.bucketed(
                     lambda pp, Tm, R, t, mb, e, *it: tracked_call(
                         parts_call, (hulls, pp, Tm, R, t, jax.tree.unflatten(tree, it), mb, e, self.margin),
                         on_compile),
                     [pi, d.T_mid[ii, pi], d.R_ends[ii, pi], d.t_ends[ii, pi], d.motion_b[ii, pi], d.swept_e[ii, pi],
-                     *(x[idx] for x in leaves)], buckets=CASCADE_BUCKETS)
+                     *(x[idx] for x in leaves)], buckets=CASCADE_BUCKETS, width=1)
 
             return by_vertex_class(self.hulls, p, run, CASCADE_BUCKETS), np.asarray(self.bounds.hull_guard_m)[tr][i, p]
 
@@ -406,31 +395,27 @@ class Batch:
                                              clear_parts)
         return box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.SWEPT)
 
-    def _hull_round(self, kernel, d: PairDetails, tr, triples, on_compile) -> np.ndarray:
-        """One round of step 4 (``kernel``: :data:`_hull_first_axis` or :data:`_hull_pairs`) on the
-        ``(interval, part, obstacle)`` triples of the intervals ``tr``, a call per vertex class."""
+    def _hull_round(self, kernel, d: PairDetails, sel, triples, on_compile) -> np.ndarray:
+        """One round of step 4 (``kernel``: :data:`hull_first_axis` or :data:`hull_pairs`) on the
+        ``(interval, part, obstacle)`` triples of the intervals ``sel``, a call per vertex class."""
         call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
         i, p, k = triples.T
-        leaves, tree = jax.tree.flatten(self.obstacles.take((self.scene_of[tr[i]], k)))  # one obstacle per triple
+        leaves, tree = self._items(sel, i, k)
 
         def run(hulls, idx):
-            return self._bucketed(
+            return self.bucketed(
                 lambda pp, T, mb, *it: tracked_call(call, (hulls, pp, T, jax.tree.unflatten(tree, it), mb,
                                                            self.margin), on_compile),
                 [p[idx], d.T_part[i[idx], p[idx]], d.motion_b[i[idx], p[idx]], *(x[idx] for x in leaves)],
-                buckets=CASCADE_BUCKETS)
+                buckets=CASCADE_BUCKETS, width=1)
 
         return by_vertex_class(self.hulls, p, run, CASCADE_BUCKETS)
 
-    def _hull_stage(self, tr, a, b, on_compile) -> LeafRecord:
+    def _hull_stage(self, tr, a, b, sel, on_compile) -> LeafRecord:
         """The hull stage (steps 2-5 of larc_jax.leaf.cascade) on the intervals ``(tr, a, b)``."""
         ar, br = self._rebased(tr, a, b)
-        pairs_call = _interval_pairs if len(self.devices) > 1 else cached_kernel(_interval_pairs)
-        d = PairDetails(*self._bucketed(
-            lambda t, sc, x, y: tracked_call(pairs_call, (self.robot, self.capsules, self.hulls, self.splines,
-                                                   self.obstacles, self.bounds, t, sc, x, y, self.margin),
-                                      on_compile),
-            [tr, self.scene_of[tr], ar, br], buckets=PAIR_BUCKETS))
+        d = PairDetails(*self._over(batched_interval_pairs, (self.robot, self.capsules, self.hulls), sel, tr, ar, br,
+                                    on_compile=on_compile, buckets=PAIR_BUCKETS))
         links = Links.of(self.capsules, self.hulls)
         G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
         G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
@@ -439,11 +424,21 @@ class Batch:
         if len(triples):
             i, p, k = triples.T
             guard_hull = G_p[i, p]
-            first = self._hull_round(_hull_first_axis, d, tr, triples, on_compile)
+            first = self._hull_round(hull_first_axis, d, sel, triples, on_compile)
             g_hull = two_rounds(first, guard_hull,
-                                lambda redo: self._hull_round(_hull_pairs, d, tr, triples[redo], on_compile))
+                                lambda redo: self._hull_round(hull_pairs, d, sel, triples[redo], on_compile))
         g, guard, cap, box, _ = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
         return box_record(g, guard, cap, box, Stage.HULL)
+
+
+def _width(sel: tuple, n_items: int) -> int:
+    """Items each interval of a selection meets."""
+    return n_items if len(sel) == 1 else sel[1].shape[1]
+
+
+def _rows(sel: tuple, rows) -> tuple:
+    """A selection's intervals ``rows``."""
+    return tuple(x[rows] for x in sel)
 
 
 def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: CapsuleModel,
@@ -470,13 +465,16 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     unique = list(dict.fromkeys(id(s) for s in scenes))
     scene_list = [next(s for s in scenes if id(s) == u) for u in unique]
     scene_of = np.array([unique.index(id(s)) for s in scenes], np.int64)
-    obstacles = stack_scenes(scene_list + scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list)), dtype)
+    scene_list += scene_list[:1] * (size_class(len(scene_list), 1) - len(scene_list))
+    cull = worth_culling(scene_list)
+    # A culled batch gives every scene a masked last item: what a culled interval's list is padded with.
+    obstacles = stack_scenes(scene_list, dtype, max(s.n_obstacles for s in scene_list) + 1 if cull else None)
     splines = spline_batch(*(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
                            n_knots=np.array([t.n_waypoints for t in trajectories] + [trajectories[0].n_waypoints] * n_pad),
                            accel=swept is not None,  # the swept stage reads accelerations
                            call=lambda fn, args: tracked_call(fn, args, on_compile))
     robot_g, capsules_g = _geometry(robot, capsules, dtype)
-    return Batch(
+    batch = Batch(
         robot=robot_g, capsules=capsules_g, splines=splines, bounds=stacked,
         obstacles=obstacles, scene_of=scene_of,
         t_start=np.array([t.t[0] for t in trajectories]), t_end=np.array([t.t[-1] for t in trajectories]),
@@ -486,3 +484,13 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         self_skip=None if self_skip is None else np.stack(list(self_skip) + list(self_skip[:1]) * n_pad),
         swept=swept,
     )
+    if cull:
+        def run(kernel, boxes, traj, depth, index, width):
+            ar, br = batch._rebased(traj, *batch.endpoints(traj, depth, index))
+            call = kernel if len(batch.devices) > 1 else cached_kernel(kernel)
+            return batch.bucketed(lambda t, sc, x, y: tracked_call(call, (
+                batch.robot, batch.capsules, batch.splines, boxes, batch.bounds, t, (sc,), x, y, batch.margin), on_compile),
+                [traj, scene_of[traj], ar, br], buckets=CULLED_BUCKETS, width=width)
+
+        batch = dataclasses.replace(batch, cull=build_cull(scene_list, scene_of, obstacles.n_items, dtype, run))
+    return batch

@@ -161,7 +161,8 @@ def _larc_batched(batch: Batch, n_traj: int, names: _Names, max_depth, progress,
         all_traj = np.concatenate([np.repeat(traj, 1 << j) for j in range(s + 1)])
         all_index = np.concatenate([((index << j)[:, None] + np.arange(1 << j)).reshape(-1) for j in range(s + 1)])
         all_depth = np.concatenate([np.full(f << j, d + j) for j in range(s + 1)])
-        a_all, b_all, rec_all = batch.evaluate_cascade(all_traj, all_depth, all_index, progress, on_compile)
+        a_all, b_all, rec_all = batch.evaluate_cascade(all_traj, all_depth, all_index, progress, on_compile,
+                                                       may_bisect=all_depth < max_depth)
         pos, sub = np.arange(f), np.zeros(f, np.int64)  # open intervals: frontier position, node below it
         for j in range(s + 1):
             rows = base[j] + (pos << j) + sub

@@ -62,6 +62,10 @@ class PointSets:
     """Per piece: its vertices (k, 3) in the base frame, m (read-only float64)."""
     owner: tuple[int, ...] = ()
     """Per piece: the obstacle it belongs to."""
+    solid: tuple[bool, ...] = ()
+    """Per obstacle: whether it is certified against as a solid (a mesh that trimesh finds convex
+    and watertight, one piece: its hull is the solid); else its surface (a non-convex mesh) or its
+    points. Empty: none is (the API's default)."""
 
     def __post_init__(self):
         n = len(self.names)
@@ -73,6 +77,15 @@ class PointSets:
         for k, kind in enumerate(self.kinds):
             if kind not in POINT_SET_KINDS:
                 raise LarcInputError(f"PointSets.kinds[{k}] = {short_repr(kind)} is not one of {', '.join(POINT_SET_KINDS)}")
+        if len(self.solid) not in (0, n):
+            raise LarcInputError(f"PointSets.solid has {len(self.solid)} entries for {n} obstacles (give one per "
+                                 "obstacle, or none)")
+        for k, solid in enumerate(self.solid):
+            if not isinstance(solid, (bool, np.bool_)) or (solid and self.kinds[k] != "mesh"):
+                raise LarcInputError(f"PointSets.solid[{k}] must be True or False (True only for a mesh), got "
+                                     f"{short_repr(solid)}")
+            if solid and list(self.owner).count(k) != 1:
+                raise LarcInputError(f"PointSets.solid[{k}]: a solid mesh is one piece (its convex hull)")
         for k, r in enumerate(self.radius):
             if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 <= r < math.inf:
                 raise LarcInputError(f"PointSets.radius[{k}] must be a finite non-negative number, got {short_repr(r)}")
@@ -87,6 +100,20 @@ class PointSets:
         object.__setattr__(self, "pieces", tuple(pieces))
         object.__setattr__(self, "owner", tuple(int(o) for o in self.owner))
         object.__setattr__(self, "radius", tuple(float(r) for r in self.radius))
+
+    def assumptions(self) -> tuple[str, ...]:
+        """What a certificate over these obstacles assumes of each, in words (certificates and
+        ``larc verify`` state them)."""
+        out = []
+        for k, (kind, name, r) in enumerate(zip(self.kinds, self.names, self.radius)):
+            if kind == "points":
+                out.append(f"{name}: points, each a ball of radius {r!r} m")
+            elif self.solid and self.solid[k]:
+                out.append(f"{name}: mesh, a solid (convex and watertight: its hull)")
+            else:
+                out.append(f"{name}: mesh, its surface only (not a convex watertight mesh: a link wholly inside "
+                           "it is not seen)")
+        return tuple(out)
 
     @property
     def count(self) -> int:
@@ -207,7 +234,8 @@ def load_cloud_points(path: Path, source: str, where: str):
 
 
 def point_set_entry(kind: str, entry: dict, base: Path, source: str, where: str, p, R, scale, radius: float):
-    """One ``mesh`` / ``points`` entry: ``(file, sha256, pieces)`` in the base frame."""
+    """One ``mesh`` / ``points`` entry: ``(file, sha256, pieces, solid)`` in the base frame (``solid``:
+    :attr:`PointSets.solid`)."""
     file = entry.get("file")
     if not isinstance(file, str) or not file:
         raise LarcInputError(f"{source}: {where}.file must be a file name, got {short_repr(file)}")
@@ -217,8 +245,9 @@ def point_set_entry(kind: str, entry: dict, base: Path, source: str, where: str,
         world = _pose_points(V, p, R)
         pieces = [world] if convex else convex_pieces(world, F, MESH_PIECE_TRIANGLES)
     else:
+        convex = False
         P, sha = load_cloud_points(path, source, where)
         pieces = convex_pieces(_pose_points(P, p, R), None, CLOUD_PIECE_POINTS)
     for piece in pieces:
         piece.setflags(write=False)
-    return str(path), sha, pieces
+    return str(path), sha, pieces, convex

@@ -145,7 +145,8 @@ def shapes_from_entries(entries, source: str, base: Path | None = None):
     if not isinstance(entries, list):
         raise LarcInputError(f"{source}: obstacles must be a list, got {short_repr(entries)}")
     kinds, names, dims, positions, rotations = [], [], [], [], []
-    sets: dict = {"kinds": [], "names": [], "files": [], "file_sha256": [], "radius": [], "pieces": [], "owner": []}
+    sets: dict = {"kinds": [], "names": [], "files": [], "file_sha256": [], "radius": [], "pieces": [], "owner": [],
+                  "solid": []}
     for k, entry in enumerate(entries):
         where = f"obstacles[{k}]"
         if not isinstance(entry, dict):
@@ -165,10 +166,10 @@ def shapes_from_entries(entries, source: str, base: Path | None = None):
             radius = parse_number(entry.get("radius", 0.0), source, f"{where}.radius", finite=True)
             if radius < 0:
                 raise LarcInputError(f"{source}: {where}.radius must not be negative, got {radius}")
-            file, sha, pieces = point_set_entry(kind, entry, base, source, where, p, R, scale, radius)
+            file, sha, pieces, solid = point_set_entry(kind, entry, base, source, where, p, R, scale, radius)
             owner = len(sets["names"])
             for key, value in (("kinds", kind), ("names", str(name)), ("files", file), ("file_sha256", sha),
-                               ("radius", radius)):
+                               ("radius", radius), ("solid", solid)):
                 sets[key].append(value)
             sets["pieces"] += pieces
             sets["owner"] += [owner] * len(pieces)

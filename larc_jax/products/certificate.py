@@ -48,8 +48,8 @@ files, the held joint values (stated or enclosed over their stroke), and that li
 Hull parts. ``larc verify`` proves, and tests with, the hull parts the robot file's split planes
 build (:func:`~larc_jax.enclosure.proof.prove_enclosures`): a result certified with other parts
 (``certify(hulls=...)``) is refused here when they are given (``hulls=``, as to ``certify``);
-without ``hulls=`` the robot file's parts are assumed, and a result certified with others is
-refuted by ``larc verify`` (its stored clearances are not the recomputed ones).
+without ``hulls=`` the robot file's parts are assumed: ``larc verify`` re-checks every leaf with
+them, and refutes a leaf that fails or whose stored clearance exceeds the recomputed one.
 """
 
 from __future__ import annotations
@@ -250,7 +250,8 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
         raise LarcInputError(f"certificate: {len(unique)} scenes but {len(files)} scene files")
     scene_docs = [{"file": None if f is None else str(f), "sha256": None if f is None else file_sha256(f),
                    "arrays_sha256": scene_sha256(first[u]), "name": first[u].name,
-                   "boxes": list(first[u].obstacle_names)} for u, f in zip(unique, files)]
+                   "boxes": list(first[u].obstacle_names),
+                   "assumes": list(first[u].point_sets.assumptions())} for u, f in zip(unique, files)]
     tfiles = list(trajectory_files) if trajectory_files is not None else [None] * len(trajectories)
     if len(tfiles) != len(trajectories):
         raise LarcInputError(f"certificate: {len(trajectories)} trajectories but {len(tfiles)} trajectory files")

@@ -29,7 +29,7 @@ CERTIFICATE_FIELDS = {
     "parameters": {f.name for f in dataclasses.fields(RunSpec)},
     "robot": {"file", "sha256", "urdf", "urdf_sha256", "geometry", "active_joints", "held_joints", "stated_joints",
               "capsules", "enclosures_sha256"},
-    "scenes[]": {"file", "sha256", "arrays_sha256", "name", "boxes"},
+    "scenes[]": {"file", "sha256", "arrays_sha256", "name", "boxes", "assumes"},
     "trajectories[]": _TRAJECTORY,
     "trajectories[].rounding": {"offset_s", "tau_s", "omega_slack", "guard_m", "hull_guard_m"},
     "trajectories[].leaves": {"depth", "index", "t0", "t1", "clearance_m", "guard_m", "certified", "capsule", "box",

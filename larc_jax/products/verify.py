@@ -24,10 +24,12 @@ call):
 3. The test: for every such leaf, ``g`` and the guard are recomputed from the files with the
    float64 reference and its own rounding bounds (stored clearances are not trusted), with the
    enclosures, gripper state (stated joints), tracking tolerance and self-collision pairs the
-   certificate records: the leaf must pass, ``g > guard``. The stored clearance must agree with the recomputed one within
-   ``CLEARANCE_TOL_M + 4 (stored guard + recomputed guard)`` (the JAX kernel and the reference
-   round differently; both are within their guards of the exact value), and the stored
-   rounding inputs with the recomputed ones to a relative ``1e-9``.
+   certificate records: the leaf must pass, ``g > guard``. The stored clearance may not exceed the
+   recomputed one by more than ``CLEARANCE_TOL_M + 4 (stored guard + recomputed guard)`` (the JAX
+   kernel and the reference round differently; both are within their guards of the exact value);
+   a stored clearance below it claims less, which a culled leaf does where its clearance exceeds
+   :data:`~larc_jax.engine.cull.CULL_SLACK_M` (:mod:`larc_jax.engine.cull`). The stored rounding
+   inputs must agree with the recomputed ones to a relative ``1e-9``.
 
 Trajectories the certificate does not claim certified are not checked. The first failure
 raises :class:`Refuted` naming the trajectory, the leaf and why (``larc verify`` exit 1); a
@@ -218,8 +220,13 @@ def _load_scenes(docs: list, files: list, robot, pins: VerifyPins, facts: list) 
         scene = read_scene(path, frame=robot.link_names[0])
         arrays = _get(doc, "arrays_sha256", where, str)
         _check_hash(scene_sha256(scene), arrays, f"scene {path} (its obstacles)")
+        assumes = scene.point_sets.assumptions()
+        if doc.get("assumes", []) != list(assumes):  # what it states of its meshes and clouds is the files' truth
+            raise Refuted(f"{where}.assumes {short_repr(doc.get('assumes'))} is not what scene {path} gives: "
+                          f"{list(assumes)}")
         scenes.append(scene)
-        facts.append(SceneFacts(index=k, file=file, arrays_sha256=arrays, boxes=tuple(scene.obstacle_names)))
+        facts.append(SceneFacts(index=k, file=file, arrays_sha256=arrays, boxes=tuple(scene.obstacle_names),
+                                assumes=assumes))
     return scenes
 
 
@@ -294,11 +301,12 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures
             raise Refuted(f"{leaf}: fails the reference test: clearance {g!r} m is not above the guard {guard!r} m "
                           f"({pair})")
         tol = CLEARANCE_TOL_M + 4 * (abs(guard_stored[j]) + abs(guard))
-        d = abs(g_stored[j] - g) if math.isfinite(g) else (0.0 if g == g_stored[j] else math.inf)
+        # One-sided: a stored clearance may claim less than the recomputed one (module docstring, 3).
+        d = g_stored[j] - g if math.isfinite(g) else (0.0 if g_stored[j] <= g else math.inf)
         if not d <= tol:
-            raise Refuted(f"{leaf}: stored clearance {g_stored[j]!r} m differs from the recomputed {g!r} m by "
+            raise Refuted(f"{leaf}: stored clearance {g_stored[j]!r} m exceeds the recomputed {g!r} m by "
                           f"{d:.3g} m (> tolerance {tol:.3g} m)")
-        diff, excess = max(diff, d), min(excess, g - guard)
+        diff, excess = max(diff, abs(d) if math.isfinite(d) else 0.0), min(excess, g - guard)
     return len(t0), diff, excess
 
 

@@ -62,6 +62,8 @@ class SceneFacts:
     boxes: tuple[str, ...]
     """Names of the obstacles read, boxes then posed shapes (none: the certificate claims nothing
     about obstacles)."""
+    assumes: tuple[str, ...] = ()
+    """What the claim assumes of each mesh and cloud (:meth:`~larc_jax.model.point_sets.PointSets.assumptions`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -441,6 +443,7 @@ def report_lines(report: VerifyReport) -> list[str]:
     for s in report.scene_files:
         boxes = f"{len(s.boxes)} obstacles" if s.boxes else "0 obstacles: the claim says nothing about obstacles"
         out.append(f"  scene {s.index}: {_file_line(s.file)}; arrays sha256 {s.arrays_sha256}; {boxes}")
+        out += [f"    {a}" for a in s.assumes]
     scenes = {s.index: s for s in report.scene_files}
     out += [_trajectory_line(t, scenes) for t in report.trajectory_files]
     out.append("  pins: " + (", ".join(report.pins) + (" (held)" if report.refuted is None else "")
