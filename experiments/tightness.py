@@ -12,12 +12,11 @@ really stay from the boxes, and asks which certificates prove it (issue 12):
    (0 included: the planner then only avoids contact at its checked states). Only the planned
    trajectories are used. Resumable through the generator's per-scene done-markers.
 2. ``truth`` — for each trajectory, the smallest python-fcl distance between any link mesh and
-   any box over the Hermite reconstruction (``scipy`` ``CubicHermiteSpline``, as a controller
-   replays it), fingers closed (joint7 = joint8 = 0, the stated opening): a 1 kHz grid, then
-   a bounded scalar minimisation around every grid minimum within 1 mm of the best (1e-7 s
-   tolerance). FCL runs only for (state, link) pairs whose capsule lower bound is below the best
-   distance found so far at 100 Hz (the capsules are proven to contain the meshes), so pruning
-   never changes the minimum. Rows are cached per trajectory (keyed by the trajectory, scene and
+   any box over the Hermite reconstruction (:mod:`experiments.mesh_truth`: ``scipy``
+   ``CubicHermiteSpline``, as a controller replays it, fingers closed (joint7 = joint8 = 0, the
+   stated opening); a 1 kHz grid, then a bounded scalar minimisation around every grid minimum
+   within 1 mm of the best; FCL only where a proven capsule lower bound is below the best
+   distance found so far, so pruning never changes the minimum). Rows are cached per trajectory (keyed by the trajectory, scene and
    code hashes) in ``truth.csv``, rewritten atomically after every trajectory.
 3. ``certify`` — LARC on the whole dataset, margin rho = 10 mm, for each configuration of
    :data:`CONFIGS`: the paper's capsules with the gripper unknown (stroke enclosed), capsules
@@ -52,13 +51,14 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.mesh_truth import COARSE_HZ, HOLD, TRUTH_HZ
+
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG_PATH = ROOT / "configs" / "stageB.yaml"
 SCENES = ("easy_window", "medium_window", "easy_shelf")
 PADDINGS_MM = (0, 5, 10, 20, 30)
 PAIRS = 10
 MARGIN_M = 0.01
-HOLD = {"joint7": 0.0, "joint8": 0.0}
 CONFIGS = (  # (name, enclosure, gripper stated, depth, padding_m: None = the enclosure's default, swept stage)
     ("capsules_d9", "capsules", False, 9, None, False),
     ("capsules_d12", "capsules", False, 12, None, False),
@@ -89,12 +89,11 @@ LABELS = {"capsules_d9": "capsules, d9", "capsules_d12": "capsules, d12", "capsu
           "cascade_swept_d12": "cascade + gripper + swept, d12"}
 """The table's column of each configuration."""
 BINS_MM = (-math.inf, 10, 15, 20, 30, 50, math.inf)
-TRUTH_HZ = 1000.0
-COARSE_HZ = 100.0
 TRUTH_FIELDS = ["traj_id", "padding_mm", "scene", "duration_s", "n_waypoints", "truth_m", "truth_t", "truth_link",
                 "truth_box", "fcl_queries", "truth_time_s", "key"]
 
-__all__ = ["main", "CONFIGS", "PADDINGS_MM", "mesh_truth"]
+__all__ = ["main", "CONFIGS", "PADDINGS_MM", "MARGIN_M", "BINS_MM", "files_fingerprint", "write_frame", "run_stage",
+           "bin_labels", "driver_args"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -106,7 +105,7 @@ def _sha(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def _fingerprint(files, params=None) -> str:
+def files_fingerprint(files, params=None) -> str:
     h = hashlib.sha256()
     for f in sorted(Path(x) for x in files):
         h.update(str(f.name).encode() + b"\0" + (_sha(f).encode() if f.is_file() else b"<missing>"))
@@ -114,29 +113,30 @@ def _fingerprint(files, params=None) -> str:
     return h.hexdigest()
 
 
-def _write_frame(path: Path, frame) -> None:
+def write_frame(path: Path, frame) -> None:
     from larc_jax.io import atomic_write_text
 
     atomic_write_text(path, frame.to_csv(index=False))
 
 
-def _stage(out: Path, name: str, fp: str, outputs, fn, force: bool) -> None:
+def run_stage(out: Path, name: str, fp: str, outputs, fn, force: bool, tag: str = "tightness") -> None:
+    """Run ``fn`` unless ``out/_stages/<name>.json`` records ``fp`` and every output exists."""
     from larc_jax.io import atomic_write_json
 
     marker = out / "_stages" / f"{name}.json"
     if not force and marker.is_file() and all(Path(o).exists() for o in outputs):
         try:
             if json.loads(marker.read_text()).get("fingerprint") == fp:
-                print(f"[tightness] {name}: skipped (outputs up to date with their inputs)", flush=True)
+                print(f"[{tag}] {name}: skipped (outputs up to date with their inputs)", flush=True)
                 return
         except (OSError, json.JSONDecodeError):
             pass
-    print(f"[tightness] {name}: running", flush=True)
+    print(f"[{tag}] {name}: running", flush=True)
     t0 = time.perf_counter()
     fn()
     dt = time.perf_counter() - t0
     atomic_write_json(marker, dict(stage=name, fingerprint=fp, elapsed_s=round(dt, 2)))
-    print(f"[tightness] {name}: done in {dt:.1f} s", flush=True)
+    print(f"[{tag}] {name}: done in {dt:.1f} s", flush=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,141 +192,9 @@ def stage_generate(plan: Plan, workers: int, force: bool) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-class _Truth:
-    """python-fcl distances of the official meshes, pruned by proven bounds (module docstring)."""
-
-    CHUNK = 2048
-
-    def __init__(self):
-        import fcl
-
-        from experiments.collision import CollisionModel
-        from larc_jax.enclosure import default_capsule_path, load_capsules
-        from larc_jax.enclosure.hull import build_parts
-        from larc_jax.model.urdf import load_robot
-
-        self.fcl = fcl
-        self.robot = load_robot(held_joint_values=HOLD, stated_joints=list(HOLD))  # fingers closed
-        self.capsules = load_capsules(default_capsule_path(), self.robot)
-        self.model = CollisionModel(self.robot)
-        links = list(dict.fromkeys(self.capsules.link_names))
-        self.links = links
-        self.obj_link = np.array([links.index(self.robot.link_names[i]) for i in self.model.object_link])
-        self.cap_link = np.array([links.index(l) for l in self.capsules.link_names])
-        # Mesh vertices on each link's hull: points of the mesh, so their distance to a box is an
-        # upper bound of the mesh's (the hull vertices are a subset of the mesh vertices).
-        parts = build_parts(self.robot)
-        self.vertices = {links.index(p.link): p.vertices for p in parts}
-        self.request = fcl.DistanceRequest()
-
-    def _padded(self, Q):
-        for start in range(0, len(Q), self.CHUNK):
-            chunk = Q[start:start + self.CHUNK]
-            yield len(chunk), np.concatenate([chunk, np.repeat(chunk[-1:], self.CHUNK - len(chunk), 0)])
-
-    def capsule_lower_bounds(self, Q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """(N, L, B) capsule distance of each link to each box at each state (<= mesh distance:
-        the capsules are proven to contain the meshes)."""
-        import jax
-
-        from larc_jax.enclosure import capsule_segments
-        from larc_jax.obstacles.geometry import segment_box_distances
-
-        out = []
-        with jax.enable_x64(True):
-            seg = jax.jit(jax.vmap(capsule_segments, in_axes=(None, None, 0)))
-            for n, chunk in self._padded(Q):
-                a, b = seg(self.robot, self.capsules, chunk)
-                d = np.asarray(segment_box_distances(a, b, lo[None], hi[None]))[:n]
-                out.append(d - np.asarray(self.capsules.radius)[None, :, None])
-        d = np.concatenate(out)
-        lb = np.full((len(Q), len(self.links), len(lo)), np.inf)
-        for c, l in enumerate(self.cap_link):
-            lb[:, l] = np.minimum(lb[:, l], d[:, c])
-        return lb
-
-    def vertex_upper_bound(self, Q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
-        """Smallest distance of any hull vertex (a mesh point) to any box over the states ``Q``."""
-        from larc_jax.model.robot import forward_kinematics_np
-
-        best = math.inf
-        for q in Q:
-            T = forward_kinematics_np(self.robot, q)
-            for l, V in self.vertices.items():
-                Tl = T[self.robot.link_index(self.links[l])]
-                W = V @ Tl[:3, :3].T + Tl[:3, 3]
-                gap = np.maximum(np.maximum(lo[None] - W[:, None], W[:, None] - hi[None]), 0.0)
-                best = min(best, float(np.sqrt((gap * gap).sum(axis=2)).min()))
-        return best
-
-    def distance(self, q, boxes, mask: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-        """(L, B) smallest mesh-box distance per link and box at ``q`` (inf where ``mask`` is
-        False), and the number of FCL queries."""
-        fcl = self.fcl
-        self.model.set_configuration(q)
-        out = np.full((len(self.links), len(boxes.objects)), np.inf)
-        n = 0
-        for k, obj in enumerate(self.model.objects):
-            l = self.obj_link[k]
-            for b, box in enumerate(boxes.objects):
-                if mask is not None and not mask[l, b]:
-                    continue
-                out[l, b] = min(out[l, b], float(fcl.distance(obj, box, self.request, fcl.DistanceResult())))
-                n += 1
-        return out, n
-
-
-def mesh_truth(truth: _Truth, traj, boxes) -> dict:
-    """The smallest mesh-box distance over the trajectory (module docstring, stage 2).
-
-    Pruning is exact: a (state, link, box) is measured with FCL only when its capsule lower
-    bound is below the best distance known, which starts from an upper bound (mesh vertices at
-    100 Hz) and only decreases."""
-    from scipy.interpolate import CubicHermiteSpline
-    from scipy.optimize import minimize_scalar
-
-    spline = CubicHermiteSpline(traj.t, traj.q, traj.qd, axis=0)
-    t = traj.t[0] + np.arange(int(math.floor(traj.duration * TRUTH_HZ)) + 1) / TRUTH_HZ
-    t = np.union1d(t[t <= traj.t[-1]], [traj.t[-1]])
-    Q = spline(t)
-    lb = truth.capsule_lower_bounds(Q, boxes.lo, boxes.hi)  # (N, L, B)
-    step = max(1, int(round(TRUTH_HZ / COARSE_HZ)))
-    best = truth.vertex_upper_bound(Q[::step], boxes.lo, boxes.hi)
-    queries = 0
-    dist = np.full(lb.shape, np.inf)
-    for i in np.argsort(lb.min(axis=(1, 2)), kind="stable"):
-        if not lb[i].min() < best:
-            break
-        d, n = truth.distance(Q[i], boxes, lb[i] < best)
-        queries += n
-        dist[i] = d
-        best = min(best, float(d.min()))
-    per_state = dist.min(axis=(1, 2))
-    i_best = int(np.argmin(per_state))
-    t_best, arg = float(t[i_best]), np.unravel_index(int(np.argmin(dist[i_best])), dist[i_best].shape)
-    # Refine each (link, box) pair around its grid minima within 1 mm of the best.
-    for l, b in zip(*np.nonzero(dist.min(axis=0) <= best + 1e-3)):
-        d = dist[:, l, b]
-        mask = np.zeros(dist.shape[1:], bool)
-        mask[l, b] = True
-        cands = [i for i in range(len(t)) if d[i] <= best + 1e-3 and (i == 0 or not d[i - 1] < d[i])
-                 and (i == len(t) - 1 or not d[i + 1] < d[i])]
-        for i in cands[:10]:
-            lo_t, hi_t = t[max(i - 1, 0)], t[min(i + 1, len(t) - 1)]
-            if not hi_t > lo_t:
-                continue
-            res = minimize_scalar(lambda x: truth.distance(spline(x), boxes, mask)[0][l, b], bounds=(lo_t, hi_t),
-                                  method="bounded", options=dict(xatol=1e-7))
-            queries += int(res.nfev)
-            if res.fun < best:
-                best, t_best, arg = float(res.fun), float(res.x), (l, b)
-    return dict(truth_m=best, truth_t=t_best, truth_link=truth.links[arg[0]], truth_box=boxes.names[arg[1]],
-                fcl_queries=queries)
-
-
 def _truth_key(path: Path, scene_file: Path) -> str:
-    code = [ROOT / "experiments" / "tightness.py", ROOT / "experiments" / "collision.py"]
-    return _fingerprint([path, scene_file, *code], dict(hz=TRUTH_HZ, coarse=COARSE_HZ, hold=HOLD))[:20]
+    code = [ROOT / "experiments" / name for name in ("tightness.py", "mesh_truth.py", "collision.py")]
+    return files_fingerprint([path, scene_file, *code], dict(hz=TRUTH_HZ, coarse=COARSE_HZ, hold=HOLD))[:20]
 
 
 _WORKER: dict = {}
@@ -334,13 +202,14 @@ _WORKER: dict = {}
 
 def _truth_job(job: dict) -> dict:
     from experiments.collision import SceneBoxes
+    from experiments.mesh_truth import MeshTruth, TruthObstacles, mesh_truth
     from larc_jax.model.trajectory_files import read_trajectory
 
     if "truth" not in _WORKER:
-        _WORKER["truth"] = _Truth()
+        _WORKER["truth"] = MeshTruth()
     truth = _WORKER["truth"]
     t0 = time.perf_counter()
-    boxes = SceneBoxes.from_file(job["scene_file"])
+    boxes = TruthObstacles.from_boxes(SceneBoxes.from_file(job["scene_file"]))
     traj = read_trajectory(job["path"], truth.robot)
     row = mesh_truth(truth, traj, boxes)
     row.update(traj_id=job["traj_id"], padding_mm=job["padding_mm"], scene=job["scene"],
@@ -371,7 +240,7 @@ def stage_truth(plan: Plan, workers: int) -> None:
     order = [r["traj_id"] for r in plan.trajectories()]
 
     def flush():
-        _write_frame(path, pd.DataFrame([rows[i] for i in order if i in rows], columns=TRUTH_FIELDS))
+        write_frame(path, pd.DataFrame([rows[i] for i in order if i in rows], columns=TRUTH_FIELDS))
 
     print(f"[tightness] truth: {len(rows)} cached, {len(jobs)} to compute ({workers} workers)", flush=True)
     flush()
@@ -458,8 +327,8 @@ def stage_certify(plan: Plan) -> None:
                                evaluations=int(b.evaluations.sum()), fine_evaluations=fine,
                                larc_over_fine=round(int(b.evaluations.sum()) / fine, 4)))
             print(f"[tightness] Stage B {name}: {stageb[-1]}", flush=True)
-    _write_frame(plan.out / "certification.csv", pd.concat(frames, ignore_index=True).drop(columns="first_blocked_row"))
-    _write_frame(plan.out / "stageB.csv", pd.DataFrame(stageb))
+    write_frame(plan.out / "certification.csv", pd.concat(frames, ignore_index=True).drop(columns="first_blocked_row"))
+    write_frame(plan.out / "stageB.csv", pd.DataFrame(stageb))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -471,7 +340,7 @@ DEPTH9 = ("cascade_pad1_d9", "cascade_d9", "cascade_swept_d9")
 """The columns of goal.md's depth-9 table."""
 
 
-def _bin_labels() -> list[str]:
+def bin_labels() -> list[str]:
     out = []
     for lo, hi in zip(BINS_MM[:-1], BINS_MM[1:]):
         if lo == -math.inf:
@@ -493,7 +362,7 @@ def stage_tables(plan: Plan) -> None:
     wide = cert.pivot(index="traj_id", columns="config", values="certified").astype(bool)
     df = truth.set_index("traj_id").join(wide, how="inner")
     df["truth_mm"] = df["truth_m"] * 1000
-    labels = _bin_labels()
+    labels = bin_labels()
     df["bin"] = pd.cut(df["truth_mm"], BINS_MM, labels=labels, right=False)
     names = [c[0] for c in CONFIGS]
     rows = []
@@ -501,7 +370,7 @@ def stage_tables(plan: Plan) -> None:
         sub = df[df["bin"] == label]
         rows.append({"true mesh clearance": label, "n": len(sub), **{n: int(sub[n].sum()) for n in names}})
     table = pd.DataFrame(rows)
-    _write_frame(plan.out / "table.csv", table)
+    write_frame(plan.out / "table.csv", table)
     head = "| true mesh clearance | n | " + " | ".join(LABELS[n] for n in names) + " |"
     lines = [head, "|" + "---|" * (2 + len(names))]
     for r in rows:
@@ -633,15 +502,21 @@ def _figure(df, names, path: Path) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=None, help="output folder (default results/tightness, or "
-                    "results/tightness_quick with --quick)")
-    ap.add_argument("--quick", action="store_true", help="one scene, one padding, 2 pairs")
+def driver_args(argv, description: str, name: str, quick_help: str):
+    """``(args, out)`` of a tightness driver's command line: ``--out`` (default
+    ``results/<name>``, or ``results/<name>_quick`` with ``--quick``), ``--force``, ``--workers``."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--out", default=None, help=f"output folder (default results/{name}, or "
+                    f"results/{name}_quick with --quick)")
+    ap.add_argument("--quick", action="store_true", help=quick_help)
     ap.add_argument("--force", action="store_true", help="rerun every stage")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args(argv)
-    out = Path(args.out) if args.out else ROOT / "results" / ("tightness_quick" if args.quick else "tightness")
+    return args, Path(args.out) if args.out else ROOT / "results" / (f"{name}_quick" if args.quick else name)
+
+
+def main(argv=None) -> int:
+    args, out = driver_args(argv, __doc__.splitlines()[0], "tightness", "one scene, one padding, 2 pairs")
     plan = Plan(out=out, scenes=SCENES[:1] if args.quick else SCENES,
                 paddings_mm=(0,) if args.quick else PADDINGS_MM, pairs=2 if args.quick else PAIRS)
     lib = sorted((ROOT / "larc_jax").rglob("*.py")) + [ROOT / "larc_jax" / "data" / "piper_capsules.yaml"]
@@ -649,15 +524,16 @@ def main(argv=None) -> int:
     params = dict(scenes=plan.scenes, paddings=plan.paddings_mm, pairs=plan.pairs)
     t0 = time.perf_counter()
     gen_files = [ROOT / "experiments" / "generate.py", CONFIG_PATH]
-    _stage(out, "generate", _fingerprint(gen_files, params), [plan.dataset(p) for p in plan.paddings_mm],
+    run_stage(out, "generate", files_fingerprint(gen_files, params), [plan.dataset(p) for p in plan.paddings_mm],
            lambda: stage_generate(plan, args.workers, args.force), args.force)
     data = [r["path"] for r in plan.trajectories()]
-    _stage(out, "truth", _fingerprint(data + me + [ROOT / "experiments" / "collision.py"], params),
+    truth_code = [ROOT / "experiments" / "collision.py", ROOT / "experiments" / "mesh_truth.py"]
+    run_stage(out, "truth", files_fingerprint(data + me + truth_code, params),
            [out / "truth.csv"], lambda: stage_truth(plan, args.workers), args.force)
     stageb_data = sorted((ROOT / "results" / "stageB" / "dataset" / "trajectories").rglob("*.yaml"))
-    _stage(out, "certify", _fingerprint(data + stageb_data + lib + me, dict(params, configs=CONFIGS)),
+    run_stage(out, "certify", files_fingerprint(data + stageb_data + lib + me, dict(params, configs=CONFIGS)),
            [out / "certification.csv", out / "stageB.csv"], lambda: stage_certify(plan), args.force)
-    _stage(out, "tables", _fingerprint([out / "truth.csv", out / "certification.csv", out / "stageB.csv"] + me,
+    run_stage(out, "tables", files_fingerprint([out / "truth.csv", out / "certification.csv", out / "stageB.csv"] + me,
                                        params),
            [out / "table.md", out / "certified_vs_clearance.png"], lambda: stage_tables(plan), args.force)
     print(f"[tightness] all stages in {time.perf_counter() - t0:.1f} s; results in {out}", flush=True)

@@ -109,6 +109,43 @@ def test_finish_maps_items_and_takes_the_floor_only_where_lower():
     assert out.clearance_m.tolist() == floor.clearance_m.tolist() and out.box.tolist() == [6] * 4
 
 
+def test_item_margins_is_the_reference_per_item(robot, capsules):
+    """The per-item capsule test (engine.kernels.item_margins, what a node's clusters and a leaf's
+    narrowed later stages read) against the NumPy float64 reference: every item's least
+    ``g - guard`` over the capsules, that pair's g, guard and capsule, on random intervals of the
+    camera cell (mesh + cloud) and the shapes cell (boxes + posed shapes); a padding item is clear."""
+    import jax
+
+    from larc_jax.engine import batch as B
+    from larc_jax.engine.kernels import item_margins
+    from larc_jax.leaf.interval import evaluate_interval_np, trajectory_rounding
+    from larc_jax.model.trajectory_files import read_trajectory
+
+    rng = np.random.default_rng(11)
+    traj = read_trajectory(EX / "reach_left.yaml", robot)
+    bounds = trajectory_rounding(traj, robot, capsules)
+    guard = np.asarray(bounds.guard_m, np.float64)
+    for scene in (_camera(), read_scene(EX / "cell_shapes.yaml")):
+        b = B.prepare([traj], [scene], robot, capsules, 0.01, np.float64, [bounds], devices=None)
+        n = 8
+        tr = np.zeros(n, np.int64)
+        depth = rng.integers(0, 9, n)
+        index = np.array([rng.integers(0, 2**d) for d in depth])
+        t0, t1 = b.endpoints(tr, depth, index)
+        with jax.enable_x64(True):
+            slack, g, grd, cap, finite = (np.asarray(x) for x in item_margins(*b.kernel_args(tr, t0, t1)))
+        m = scene.n_obstacles
+        assert finite.all() and (slack[:, m:] == np.inf).all()  # only the batch's padding item beyond
+        for i in range(n):
+            ev = evaluate_interval_np(robot, capsules, traj, scene, float(t0[i]), float(t1[i]), 0.01, bounds)
+            ref = ev.g_pairs - guard[:, None]  # (C, items)
+            c = ref.argmin(axis=0)
+            np.testing.assert_allclose(slack[i, :m], ref.min(axis=0), rtol=0, atol=1e-12)
+            np.testing.assert_allclose(g[i, :m], ev.g_pairs[c, np.arange(m)], rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(grd[i, :m], guard[c])
+            assert (cap[i, :m] == c).all()
+
+
 TOWARD = -np.array([-0.275, 0.325, 0.0]) / np.linalg.norm([-0.275, 0.325])
 """From the camera cell's bracket toward the arm's base."""
 

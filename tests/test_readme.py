@@ -137,6 +137,17 @@ def test_tightness_table_is_the_generated_one():
     assert README[i:j].strip() == want.strip()
 
 
+def test_kinds_tightness_table_is_the_generated_one():
+    """The README's per-kind tightness table is results/tightness_kinds/goal.md and table.md
+    (experiments.tightness_kinds)."""
+    gen = ROOT / "results" / "tightness_kinds"
+    begin = ("<!-- kinds tightness table: results/tightness_kinds/goal.md and table.md, written by "
+             "experiments.tightness_kinds -->")
+    i, j = README.index(begin) + len(begin), README.index("<!-- end of kinds tightness table -->")
+    want = "\n\n".join(_demote((gen / name).read_text()) for name in ("goal.md", "table.md"))
+    assert README[i:j].strip() == want.strip()
+
+
 def _demote(text: str) -> str:
     """A generated Markdown file as the README quotes it: its '# ' title as bold text."""
     lines = text.strip().splitlines()

@@ -45,7 +45,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..leaf.record import LeafRecord
+from ..leaf.record import CULL_SLACK_M, LeafRecord
 from ..model.scene import Scene
 from ..obstacles import stack_scenes
 from .kernels import item_margins
@@ -59,9 +59,6 @@ CLUSTER_PIECES = 32
 """Pieces per cluster at most."""
 CULL_DEPTH = 6
 """Deepest nodes tested against the cluster boxes (127 intervals per trajectory)."""
-CULL_SLACK_M = 0.02
-"""A cluster is dropped from a node where its ``g - guard`` exceeds this, m; leaves record the
-all-pairs clearance wherever its ``g - guard`` is at most this (module docstring)."""
 WIDTHS = (4, 64)
 """Items per interval after culling, rounded up to one of these (each a compiled shape); an
 interval needing at least the whole scene's item count is tested against the whole scene, and one

@@ -26,7 +26,14 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-__all__ = ["Stage", "LeafColumn", "LeafRecord", "box_record", "self_record", "passes", "needs_hull", "compose"]
+__all__ = ["Stage", "LeafColumn", "LeafRecord", "box_record", "self_record", "passes", "needs_hull", "compose",
+           "CULL_SLACK_M"]
+
+CULL_SLACK_M = 0.02
+"""A culled scene's cluster is dropped from a node where its ``g - guard`` exceeds this, m; a leaf
+records the all-pairs clearance wherever that one's ``g - guard`` is at most this, and above it
+may record a lower bound (:mod:`larc_jax.engine.cull`; ``larc verify`` checks stored clearances
+both ways below half of it, :mod:`larc_jax.products.verify`)."""
 
 
 class Stage(enum.IntEnum):

@@ -27,8 +27,10 @@ call):
    certificate records: the leaf must pass, ``g > guard``. The stored clearance may not exceed the
    recomputed one by more than ``CLEARANCE_TOL_M + 4 (stored guard + recomputed guard)`` (the JAX
    kernel and the reference round differently; both are within their guards of the exact value);
-   a stored clearance below it claims less, which a culled leaf does where its clearance exceeds
-   :data:`~larc_jax.engine.cull.CULL_SLACK_M` (:mod:`larc_jax.engine.cull`). The stored rounding
+   a stored clearance below it claims less, which a culled leaf does where its ``g - guard``
+   exceeds :data:`~larc_jax.leaf.record.CULL_SLACK_M` (:mod:`larc_jax.engine.cull`); where the
+   recomputed ``g - guard`` is at most half of that, every engine records every pair's
+   clearance, so one below it by more than the same tolerance is refuted too. The stored rounding
    inputs must agree with the recomputed ones to a relative ``1e-9``.
 
 Trajectories the certificate does not claim certified are not checked. The first failure
@@ -95,6 +97,7 @@ from ..enclosure.proof import EnclosureNotProven, prove_enclosures  # noqa: E402
 from ..enclosure.robot_file import load_robot_file  # noqa: E402
 from ..errors import GeometryChanged, LarcInputError, OneLineError  # noqa: E402
 from ..leaf.interval import dyadic_ends, trajectory_rounding  # noqa: E402
+from ..leaf.record import CULL_SLACK_M  # noqa: E402
 from ..io import parse_json, read_input_bytes, read_input_text, short_repr  # noqa: E402
 from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np  # noqa: E402
 from ..model.robot import JointType  # noqa: E402
@@ -301,11 +304,16 @@ def _check_trajectory(doc: dict, k: int, traj, scene, robot, enc: LeafEnclosures
             raise Refuted(f"{leaf}: fails the reference test: clearance {g!r} m is not above the guard {guard!r} m "
                           f"({pair})")
         tol = CLEARANCE_TOL_M + 4 * (abs(guard_stored[j]) + abs(guard))
-        # One-sided: a stored clearance may claim less than the recomputed one (module docstring, 3).
+        # One-sided above CULL_SLACK_M / 2: a stored clearance may claim less than the recomputed
+        # one there (module docstring, 3).
         d = g_stored[j] - g if math.isfinite(g) else (0.0 if g_stored[j] <= g else math.inf)
         if not d <= tol:
             raise Refuted(f"{leaf}: stored clearance {g_stored[j]!r} m exceeds the recomputed {g!r} m by "
                           f"{d:.3g} m (> tolerance {tol:.3g} m)")
+        if g - guard <= CULL_SLACK_M / 2 and not d >= -tol:
+            raise Refuted(f"{leaf}: stored clearance {g_stored[j]!r} m is below the recomputed {g!r} m by "
+                          f"{-d:.3g} m (> tolerance {tol:.3g} m), within {CULL_SLACK_M / 2!r} m of the guard, "
+                          "where every engine records the clearance of every pair")
         diff, excess = max(diff, abs(d) if math.isfinite(d) else 0.0), min(excess, g - guard)
     return len(t0), diff, excess
 
