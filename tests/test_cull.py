@@ -228,9 +228,9 @@ def test_culled_runs_decide_as_every_pair(robot, capsules, culled, monkeypatch):
 @pytest.mark.slow
 def test_culled_larc_cascade_certifies_as_every_pair_and_verifies(robot, capsules, culled, monkeypatch, tmp_path):
     """LARC with the cascade in a culled batch: the same trajectories certified as every pair;
-    an interval above the deepest level on which the capsules fail more than the widest list is
-    bisected rather than sent to the hull stage (so the leaves may be finer), and every leaf
-    verifies with the NumPy reference."""
+    an interval above the deepest level that meets more than the widest list is bisected,
+    untested above the culled depth and rather than sent to the hull stage below it (so the
+    leaves may be finer), and every leaf verifies with the NumPy reference."""
     import larc_jax as lj
     import larc_jax.engine.batch as batch_module
     from larc_jax.model.trajectory_files import read_trajectory
@@ -238,13 +238,16 @@ def test_culled_larc_cascade_certifies_as_every_pair_and_verifies(robot, capsule
     scene = _camera(tmp_path)
     names = ("reach_left.yaml", "sweep_front.yaml")
     trajs = [read_trajectory(EX / n, robot) for n in names]
-    deferred = []
+    deferred, untested = [], []
     stages = batch_module.Batch._stages
 
-    def spy(self, traj, a, b, sel, on_chunk, on_compile, cascade, may_bisect=None):
-        record, self_test = stages(self, traj, a, b, sel, on_chunk, on_compile, cascade, may_bisect)
-        if may_bisect is not None and len(sel) == 1:  # the whole scene: wider than the widest list
+    def spy(self, traj, a, b, sel, on_chunk, on_compile, cascade, may_bisect=None, shallow=None):
+        record, self_test = stages(self, traj, a, b, sel, on_chunk, on_compile, cascade, may_bisect, shallow)
+        if may_bisect is not None and len(sel) == 1 and self.cull is not None:  # wider than the widest list
             deferred.append(int((may_bisect & (record.stage == 0)).sum()))
+            # above the culled depth, failed without a test (NaN); below it, tested (never NaN here)
+            assert (np.isnan(record.clearance_m) == (may_bisect & shallow)).all()
+            untested.append(int((may_bisect & shallow).sum()))
         return record, self_test
 
     monkeypatch.setattr(batch_module.Batch, "_stages", spy)
@@ -252,7 +255,7 @@ def test_culled_larc_cascade_certifies_as_every_pair_and_verifies(robot, capsule
     with monkeypatch.context() as m:
         m.setattr(batch_module, "worth_culling", lambda scenes: False)
         full = lj.certify(trajs, [scene] * 2, robot, capsules, method="larc", enclosure="hull")
-    assert culled and deferred and sum(deferred) > 0  # some wide interval was bisected instead
+    assert culled and deferred and sum(deferred) > 0 and sum(untested) > 0  # some wide interval was bisected instead
     assert (res.certified == full.certified).all() and res.certified.any()
     assert res.evaluations.sum() >= full.evaluations.sum()
     path = tmp_path / "cert.json"

@@ -148,6 +148,13 @@ def test_kinds_tightness_table_is_the_generated_one():
     assert README[i:j].strip() == want.strip()
 
 
+def test_readme_quotes_the_boundary_table():
+    """The README's per-kind boundary table is results/boundary_kinds/table.md (experiments.boundary_kinds)."""
+    begin = "<!-- kinds boundary table: results/boundary_kinds/table.md, written by experiments.boundary_kinds -->"
+    i, j = README.index(begin) + len(begin), README.index("<!-- end of kinds boundary table -->")
+    assert README[i:j].strip() == (ROOT / "results" / "boundary_kinds" / "table.md").read_text().strip()
+
+
 def _demote(text: str) -> str:
     """A generated Markdown file as the README quotes it: its '# ' title as bold text."""
     lines = text.strip().splitlines()

@@ -46,7 +46,7 @@ from ..model.robot import Robot
 from ..model.scene import Scene
 from ..model.spline_batch import SplineBatch, spline_batch
 from ..obstacles import ObstacleSet, stack_scenes
-from .cull import WIDTHS, Cull, CullPart, build_cull, worth_culling
+from .cull import CULL_DEPTH, WIDTHS, Cull, CullPart, build_cull, worth_culling
 from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_intervals_broad, hull_first_axis, hull_pairs,
                       item_margins, self_intervals, swept_capsules, swept_intervals, swept_parts)
 
@@ -246,10 +246,10 @@ class Batch:
         guard``). Without :attr:`hulls`, no hull stage; without :attr:`swept`, no swept stage.
 
         ``may_bisect`` (bool per interval; LARC: those above its deepest level): in a culled batch
-        (:mod:`larc_jax.engine.cull`), such an interval that meets more items than the widest
-        culled list and fails the capsule test on a pair computed exactly skips the all-pairs
-        recomputation and the later stages, and fails (it is bisected: its children are tested;
-        nothing is certified that a test did not prove)."""
+        (:mod:`larc_jax.engine.cull`), such an interval meeting more items than the widest list
+        fails untested (``g`` NaN) above the deepest culled nodes (its children meet their own
+        lists), below them when the capsules fail on a pair computed exactly (no recomputation, no
+        later stage); it is bisected, and nothing is certified that a test did not prove."""
         return self._leaf_test(traj, depth, index, on_chunk, on_compile, cascade=True, may_bisect=may_bisect)
 
     def selection(self, traj, depth, index) -> list[CullPart]:
@@ -265,7 +265,8 @@ class Batch:
         for part in self.selection(traj, depth, index):
             r = part.rows
             record, self_test = self._stages(traj[r], a[r], b[r], part.sel, on_chunk, on_compile, cascade,
-                                             None if may_bisect is None else np.asarray(may_bisect)[r])
+                                             None if may_bisect is None else np.asarray(may_bisect)[r],
+                                             np.broadcast_to(depth, np.shape(traj))[r] < CULL_DEPTH)
             rows.append(r)
             records.append(compose(part.finish(record), self_test))
         if len(records) == 1:
@@ -273,26 +274,29 @@ class Batch:
         order = np.argsort(np.concatenate(rows))
         return a, b, LeafRecord(*(np.concatenate(cols)[order] for cols in zip(*records)))
 
-    def _stages(self, traj, a, b, sel, on_chunk, on_compile, cascade: bool, may_bisect=None):
+    def _stages(self, traj, a, b, sel, on_chunk, on_compile, cascade: bool, may_bisect=None, shallow=None):
         """``(record, self_test)`` of intervals ``(traj, a, b)`` tested against ``sel``'s items: the
         capsule stage's record, with the hull and swept stages' where they ran (``cascade``), and
-        the self stage's (None without :attr:`self_pairs`)."""
-        ar, br = self._rebased(traj, a, b)
+        the self stage's (None without :attr:`self_pairs`); ``may_bisect`` and ``shallow`` (depth
+        below CULL_DEPTH) per interval, as :meth:`evaluate_cascade` says."""
+        ar, br = self._rebased(traj, a, b)  # width 0 (culled, nothing near): the node's floor is the record
         head = (self.robot, self.capsules)
-        broad = self.capsules.n_capsules * _width(sel, self.obstacles.n_items) > 2 * BROAD_PHASE_K and self.use_broad_phase
+        width = _width(sel, self.obstacles.n_items)
+        broad = self.capsules.n_capsules * width > 2 * BROAD_PHASE_K and self.use_broad_phase
         buckets = BUCKETS if len(sel) == 1 else CULLED_BUCKETS
-        if _width(sel, self.obstacles.n_items):
-            g, guard, cap, box, exact = self._over(evaluate_intervals_broad if broad else evaluate_intervals, head,
-                                                   sel, traj, ar, br, on_chunk, on_compile, buckets)
-        else:  # nothing near (culled): no obstacle to test, the node's floor is the record
-            g, guard, cap, box, exact = np.full(len(traj), np.inf), np.zeros(len(traj)), *np.zeros((2, len(traj)), int), \
-                np.ones(len(traj), bool)
-            if on_chunk:
-                on_chunk(len(traj))
-        # LARC in a culled batch: an interval above its deepest level that meets more items than the
-        # widest list and fails on a pair computed exactly is bisected as it is (evaluate_cascade).
-        defer = np.zeros(len(traj), bool) if may_bisect is None or self.cull is None or \
-            _width(sel, self.obstacles.n_items) <= WIDTHS[-1] else may_bisect & ~(g > guard)
+        wide = may_bisect is not None and self.cull is not None and width > WIDTHS[-1]
+        untested = np.asarray(may_bisect) & np.asarray(shallow) if wide else np.zeros(len(traj), bool)
+        g, guard, cap, box, exact = np.full(len(traj), np.inf), np.zeros(len(traj)), *np.zeros((2, len(traj)), int), \
+            np.ones(len(traj), bool)
+        g[untested] = np.nan
+        test = np.flatnonzero(~untested) if width else np.zeros(0, np.int64)
+        if len(test):
+            g[test], guard[test], cap[test], box[test], exact[test] = self._over(
+                evaluate_intervals_broad if broad else evaluate_intervals, head, _rows(sel, test), traj[test],
+                ar[test], br[test], on_chunk, on_compile, buckets)
+        if on_chunk and len(traj) > len(test):
+            on_chunk(len(traj) - len(test))
+        defer = may_bisect & ~(g > guard) if wide else np.zeros(len(traj), bool)
         redo = np.flatnonzero(~exact.astype(bool) & ~defer)
         if len(redo):  # the broad phase could not prove its pick: every pair, exactly
             g[redo], guard[redo], cap[redo], box[redo], _ = self._over(
