@@ -354,3 +354,97 @@ def test_two_rounds_rule():
     assert asked == [[1, 2, 3, 4]]
     np.testing.assert_array_equal(g, [0.5, 7.0, 8.0, 9.0, 10.0])
     assert len(two_rounds(np.array([1.0]), np.array([0.0]), lambda redo: 1 / 0)) == 1  # never asked
+
+
+def test_screen_matches_reference(dataset, model):
+    """The screen ahead of step 2 (:func:`link_upper_excess`) against its NumPy float64 reference
+    on random intervals, links and items, and on named cases: a zero-width interval, the whole
+    horizon, a box far away (large positive), a box on the arm (negative), no part on the link (inf)."""
+    from larc_jax.leaf.cascade import link_upper_excess, link_upper_excess_np
+
+    robot, capsules, hulls = model
+    trajs, scenes = dataset
+    links = Links.of(capsules, hulls)
+    rng = np.random.default_rng(3)
+    cases = []
+    for k in range(8):
+        traj = trajs[k]
+        a, b = np.sort(rng.uniform(traj.t[0], traj.t[-1], 2))
+        cases.append((k, a, b, scenes[k], rng.integers(links.n_links)))
+    t = trajs[0].t
+    far = Scene(lo=np.array([[5.0, 5.0, 5.0]]), hi=np.array([[5.5, 5.5, 5.5]]), box_names=("far",), name="far")
+    on_arm = Scene(lo=np.array([[-2.0, -2.0, -2.0]]), hi=np.array([[2.0, 2.0, 2.0]]), box_names=("all",), name="all")
+    cases += [(0, t[1], t[1], scenes[0], 1), (0, t[0], t[-1], scenes[0], 2), (0, t[0], t[-1], far, 0),
+              (0, t[0], t[1], on_arm, 3), (0, t[0], t[1], scenes[0], -1)]
+    seen = []
+    for k, a, b, scene, link in cases:
+        traj = trajs[k]
+        bounds = trajectory_rounding(traj, robot, capsules, np.float64, hulls)
+        ar, br = rebase_ends(a, b, float(bounds.offset_s))
+        on_link = links.of_part == link
+        with jax.enable_x64(True):
+            spline = HermiteSpline.from_waypoints(traj.t - float(bounds.offset_s), traj.q, traj.qd)
+            item = stack_scenes([scene], np.float64).take((0, 0))
+            got = float(link_upper_excess(robot, capsules, hulls, spline, item, ar, br, MARGIN, bounds, on_link))
+        want = link_upper_excess_np(robot, capsules, hulls, traj, scene, a, b, MARGIN, bounds, 0, on_link)
+        assert got == want or abs(got - want) <= 1e-12, (k, a, b, scene.name, link)
+        seen.append(got)
+    assert seen[-3] > 4 and seen[-2] < 0 and seen[-1] == np.inf
+
+
+def _spied_screen(monkeypatch):
+    """Record what :meth:`Batch._hopeless` returns (a list of bool arrays)."""
+    import larc_jax.engine.batch as batch_module
+
+    seen, real = [], batch_module.Batch._hopeless
+
+    def spy(self, *args):
+        seen.append(real(self, *args))
+        return seen[-1]
+
+    monkeypatch.setattr(batch_module.Batch, "_hopeless", spy)
+    return seen
+
+
+def test_screen_changes_no_leaf(dataset, model, larc, monkeypatch):
+    """LARC with the screen (the default) and without it (every interval through steps 2-5) walk
+    the same intervals and write bit-identical leaves: the screen only spares work on intervals
+    that are bisected whatever steps 2-4 find."""
+    import dataclasses
+
+    import larc_jax.engine.batch as batch_module
+
+    robot, capsules, _ = model
+    seen = _spied_screen(monkeypatch)
+    screened = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
+    assert sum(int(s.sum()) for s in seen) > 20  # the screen spared steps 2-4 on many intervals
+    monkeypatch.setattr(batch_module.Batch, "_hopeless", lambda self, tr, *args: np.zeros(len(tr), bool))
+    whole = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
+    for r in (screened, larc):
+        assert (r.certified == whole.certified).all() and (r.frontier == whole.frontier).all()
+        for f in dataclasses.fields(whole.leaves):
+            np.testing.assert_array_equal(getattr(r.leaves, f.name), getattr(whole.leaves, f.name), err_msg=f.name)
+
+
+def test_screened_intervals_fail_the_cascade(dataset, model, monkeypatch):
+    """One-sided: every interval of depths 0-5 gets the same verdict from the leaf test with the
+    screen (``may_bisect``) as from the whole cascade; in particular every interval the screen
+    calls hopeless fails steps 2-5, and the screen was asked about some that then passed."""
+    from larc_jax.engine import batch as B
+
+    robot, capsules, hulls = model
+    trajs, scenes = dataset
+    bounds = [trajectory_rounding(t, robot, capsules, np.float64, hulls) for t in trajs]
+    b = B.prepare(trajs, scenes, robot, capsules, MARGIN, np.float64, bounds, hulls=hulls)
+    depth = np.concatenate([np.full(2**d, d) for d in range(6)])
+    index = np.concatenate([np.arange(2**d) for d in range(6)])
+    traj = np.repeat(np.arange(len(trajs)), len(depth))
+    depth, index = np.tile(depth, len(trajs)), np.tile(index, len(trajs))
+    whole = b.evaluate_cascade(traj, depth, index)[2]
+    seen = _spied_screen(monkeypatch)
+    screened = b.evaluate_cascade(traj, depth, index, may_bisect=np.ones(len(traj), bool))[2]
+    hopeless = sum(int(s.sum()) for s in seen)
+    assert hopeless > 50 and sum(len(s) for s in seen) > hopeless  # it spared some, not all
+    np.testing.assert_array_equal(screened.stage > 0, whole.stage > 0)
+    passed = whole.stage == 2
+    np.testing.assert_array_equal(screened.clearance_m[passed], whole.clearance_m[passed])

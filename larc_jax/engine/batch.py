@@ -4,17 +4,15 @@ A dataset of trajectories (each with its own waypoint count, duration and scene)
 :class:`Batch`: splines padded to a common knot count (their range-maximum tables ragged,
 each its own length: :mod:`larc_jax.model.spline_batch`), scenes stacked into one obstacle set
 padded to a common item count (masked; :func:`~larc_jax.obstacles.stack_scenes`), per-trajectory
-horizons. :meth:`Batch.evaluate` runs the interval test on any list
-of (trajectory, depth, index) intervals in jitted, vmapped calls (:mod:`larc_jax.engine.kernels`)
-whose sizes are padded to a few buckets, so a process compiles a handful of shapes rather than
-one per frontier size. A scene of many mesh or cloud pieces is culled per subtree of intervals
-(:mod:`larc_jax.engine.cull`): each interval then meets the items its subtree kept, in lists of
-a few widths.
+horizons. :meth:`Batch.evaluate` runs the interval test on any list of (trajectory, depth,
+index) intervals in jitted, vmapped calls (:mod:`larc_jax.engine.kernels`) padded to a few
+bucket sizes, so a process compiles a handful of shapes, not one per frontier size. A scene of
+many mesh or cloud pieces is culled per subtree of intervals (:mod:`larc_jax.engine.cull`): each
+interval then meets the items its subtree kept, in lists of a few widths.
 
-Several devices. With more than one device (all GPUs of a machine, or CPU devices forced with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each batch of intervals is sharded
-along the interval axis over a 1-D mesh (``jax.sharding``); every interval is still evaluated
-by the same kernel on one device, so results are identical to a single-device run.
+Several devices (all GPUs of a machine, or CPU devices forced with ``XLA_FLAGS=
+--xla_force_host_platform_device_count=N``): each batch of intervals is sharded along the interval
+axis over a 1-D mesh (``jax.sharding``); each interval still runs on one device: identical results.
 
 Interval ends are exact dyadic fractions of the horizon (:func:`dyadic_ends`), shared by every
 certifier: neighbours compute their common end from the same fraction, so a cover has no gaps.
@@ -48,15 +46,14 @@ from ..model.spline_batch import SplineBatch, spline_batch
 from ..obstacles import ObstacleSet, stack_scenes
 from .cull import CULL_DEPTH, WIDTHS, Cull, CullPart, build_cull, worth_culling
 from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_intervals_broad, hull_first_axis, hull_pairs,
-                      item_margins, self_intervals, swept_capsules, swept_intervals, swept_parts)
+                      hull_screen, item_margins, self_intervals, swept_capsules, swept_intervals, swept_parts)
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
 BUCKETS = tuple(2**k for k in range(2, 13))
-"""Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11
-compiled shapes); larger frontiers run in 4096-chunks. Small buckets matter when trajectories
-are certified one at a time: a call costs ~0.1 ms plus ~10 us per padded interval on a CPU core,
-so a 3-interval frontier padded to 64 would cost 5x what it needs."""
+"""Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11 shapes;
+larger frontiers run in 4096-chunks): small ones matter one trajectory per call, where a call
+costs ~0.1 ms plus ~10 us per padded interval on a CPU core."""
 
 
 MAX_BATCH_TRAJECTORIES = 1024
@@ -66,18 +63,15 @@ grow with the dataset."""
 
 
 CASCADE_BUCKETS = (64, 256, 1024)
-"""Sizes of the cascade's second-stage calls (larc_jax.leaf.cascade): fewer than :data:`BUCKETS`,
-because those kernels take seconds to compile; a small call padded to 64 costs a few ms. Larger
-counts run in 1024-chunks: a GJK pair costs ~30 us on a CPU core, so padding a remainder to 4096
-(the former largest size) cost more than the extra calls (on Stage B, 57 % of the padded pairs
-were real)."""
+"""Sizes of the cascade's later calls (larc_jax.leaf.cascade, the screen, steps 4 and the swept
+stage): few, as those kernels take seconds to compile; a small call padded to 64 costs a few ms,
+and a GJK pair ~30 us on a CPU core, so larger counts run in 1024-chunks rather than 4096."""
 
 
 PAIR_BUCKETS = (16, 32, 64, 128, 256, 512, 1024)
 """Sizes of the cascade's step-2 calls (:func:`~larc_jax.leaf.cascade.interval_pairs`, ~1.2 s to
-compile each): a ladder of 2, because one trajectory's open frontier is typically a few dozen to
-a few hundred intervals (on Stage B one at a time, the median call held 119: 4.1 ms padded to 256,
-2.6 ms at 128)."""
+compile each): a ladder of 2, as one trajectory's open frontier is a few dozen to a few hundred
+intervals (on Stage B one at a time, the median call held 119: 4.1 ms at 256, 2.6 ms at 128)."""
 
 
 CULLED_BUCKETS = (32, 128, 1024)
@@ -186,15 +180,6 @@ class Batch:
         return (self.robot, self.capsules, self.splines, self.obstacles, self.bounds, traj, (self.scene_of[traj],),
                 ar, br, self.margin)
 
-    def cost_analysis(self, traj, depth, index, broad_phase: bool = True) -> dict:
-        """XLA's cost analysis (``flops``, ``bytes accessed``, ...) of the compiled kernel for
-        these intervals (one call, no padding, every item; the broad-phase kernel, or the
-        all-pairs one): for benchmarks."""
-        kernel = evaluate_intervals_broad if broad_phase else evaluate_intervals
-        with jax.enable_x64(True):
-            cost = kernel.lower(*self.kernel_args(traj, *self.endpoints(traj, depth, index))).compile().cost_analysis()
-        return dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
-
     def bucketed(self, call, items, on_chunk=None, buckets=BUCKETS, width: int | None = None):
         """Run ``call(*chunk)`` over the per-item arrays ``items`` in chunks padded to
         ``buckets`` (padding repeats the chunk's first item; its results are dropped), at most
@@ -249,7 +234,9 @@ class Batch:
         (:mod:`larc_jax.engine.cull`), such an interval meeting more items than the widest list
         fails untested (``g`` NaN) above the deepest culled nodes (its children meet their own
         lists), below them when the capsules fail on a pair computed exactly (no recomputation, no
-        later stage); it is bisected, and nothing is certified that a test did not prove."""
+        later stage); it is bisected, and nothing is certified that a test did not prove. Without the
+        swept stage, one the hull stage surely fails (:func:`~larc_jax.leaf.cascade.link_upper_excess`)
+        keeps its capsule record: steps 2-4 of the cascade would not change its verdict."""
         return self._leaf_test(traj, depth, index, on_chunk, on_compile, cascade=True, may_bisect=may_bisect)
 
     def selection(self, traj, depth, index) -> list[CullPart]:
@@ -290,10 +277,11 @@ class Batch:
             np.ones(len(traj), bool)
         g[untested] = np.nan
         test = np.flatnonzero(~untested) if width else np.zeros(0, np.int64)
-        if len(test):
-            g[test], guard[test], cap[test], box[test], exact[test] = self._over(
-                evaluate_intervals_broad if broad else evaluate_intervals, head, _rows(sel, test), traj[test],
-                ar[test], br[test], on_chunk, on_compile, buckets)
+        if len(test):  # every interval (no untested one): the arrays as they are, not copies
+            t = slice(None) if len(test) == len(traj) else test
+            g[t], guard[t], cap[t], box[t], exact[t] = self._over(
+                evaluate_intervals_broad if broad else evaluate_intervals, head, sel if len(test) == len(traj)
+                else _rows(sel, test), traj[t], ar[t], br[t], on_chunk, on_compile, buckets)
         if on_chunk and len(traj) > len(test):
             on_chunk(len(traj) - len(test))
         defer = may_bisect & ~(g > guard) if wide else np.zeros(len(traj), bool)
@@ -313,6 +301,11 @@ class Batch:
             self_test = self_record(gs, gds, c1.astype(np.int64), c2.astype(np.int64))
         record = box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.CAPSULE)
         open_ = np.flatnonzero(needs_hull(record, self_test) & ~defer)
+        screen = open_[np.asarray(may_bisect)[open_]] if cascade and may_bisect is not None and self.hulls is not None \
+            and self.swept is None else open_[:0]  # only a verdict needed: the hull stage alone decides it
+        if len(screen):
+            open_ = np.setdiff1d(open_, screen[self._hopeless(traj[screen], ar[screen], br[screen], _rows(sel, screen),
+                                                              cap[screen], box[screen], on_compile)])
         if cascade and len(open_) and (self.hulls is not None or self.swept is not None):
             later = self._later_stages if self.cull is None else self._narrowed_stages
             record = record.put(open_, later(traj[open_], a[open_], b[open_], _rows(sel, open_), on_compile))
@@ -399,6 +392,16 @@ class Batch:
                                              clear_parts)
         return box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.SWEPT)
 
+    def _hopeless(self, tr, ar, br, sel, cap, box, on_compile) -> np.ndarray:
+        """Where the hull stage surely fails intervals ``(tr, ar, br)`` (rebased) the capsules fail on
+        (capsule ``cap``, item ``box`` of ``sel``): :func:`~larc_jax.leaf.cascade.link_upper_excess`."""
+        links, (leaves, tree) = Links.of(self.capsules, self.hulls), self._items(sel, np.arange(len(tr)), box)
+        call = hull_screen if len(self.devices) > 1 else cached_kernel(hull_screen)
+        return ~(self.bucketed(lambda t, x, y, m, *it: tracked_call(call, (
+            self.robot, self.capsules, self.hulls, self.splines, self.bounds, t, x, y, jax.tree.unflatten(tree, it), m,
+            self.margin), on_compile), [tr, ar, br, links.of_part[None, :] == links.of_capsule[cap][:, None], *leaves],
+            buckets=CASCADE_BUCKETS, width=1) > 0)
+
     def _hull_round(self, kernel, d: PairDetails, sel, triples, on_compile) -> np.ndarray:
         """One round of step 4 (``kernel``: :data:`hull_first_axis` or :data:`hull_pairs`) on the
         ``(interval, part, obstacle)`` triples of the intervals ``sel``, a call per vertex class."""
@@ -451,12 +454,9 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
             self_pairs: SelfPairs | None = None, self_skip: Sequence[np.ndarray] | None = None,
             swept: SweptTables | None = None) -> Batch:
     """Pad a validated dataset into a :class:`Batch` (one scene and one
-    :func:`~larc_jax.leaf.interval.trajectory_rounding` per trajectory).
-
-    ``devices``: the devices to shard each interval batch over (default: every device of JAX's
-    default backend, e.g. all local GPUs; on a CPU, one device unless XLA is asked for more).
-    ``on_compile``: see :meth:`Batch.evaluate`.
-    """
+    :func:`~larc_jax.leaf.interval.trajectory_rounding` per trajectory). ``devices``: those to shard
+    each interval batch over (default: every device of JAX's default backend, e.g. all local GPUs;
+    on a CPU, one device unless XLA is asked for more). ``on_compile``: see :meth:`Batch.evaluate`."""
     dtype = np.dtype(dtype)
     # Shapes are rounded up to size classes (see size_class); padded knots lie after t_K and
     # are never touched by an interval inside the horizon (hermite.pad_waypoints), padded

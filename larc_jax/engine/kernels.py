@@ -13,7 +13,7 @@ import dataclasses
 import functools
 
 from ..lazy_jax import jax, jnp
-from ..leaf.cascade import hull_pair_clearance, interval_pairs
+from ..leaf.cascade import hull_pair_clearance, interval_pairs, link_upper_excess
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import evaluate_interval
 from ..leaf.placement import place
@@ -22,7 +22,7 @@ from ..leaf.swept import swept_capsule_clearance, swept_part_clearance, swept_pl
 from ..model.spline_batch import SplineRow
 from ..obstacles.polytope import GJK_ITERATIONS
 
-__all__ = ["evaluate_intervals", "evaluate_intervals_broad", "item_margins", "batched_interval_pairs", "hull_first_axis", "hull_pairs",
+__all__ = ["evaluate_intervals", "evaluate_intervals_broad", "item_margins", "batched_interval_pairs", "hull_screen", "hull_first_axis", "hull_pairs",
            "self_intervals", "swept_intervals", "swept_capsules", "swept_parts"]
 
 
@@ -65,6 +65,18 @@ def batched_interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, t
         return d.g_capsule, d.T_part, d.motion_b, d.g_upper
 
     return jax.vmap(one)(traj, sel, a, b)
+
+
+@jax.jit
+def hull_screen(robot, capsules, hulls, splines, bounds, traj, a, b, items, on_link, margin):
+    """The screen before step 2 (:func:`~larc_jax.leaf.cascade.link_upper_excess`) on F intervals,
+    each against one obstacle (``items``) and the parts ``on_link`` (F, P) of one link: (F,)."""
+
+    def one(t, ai, bi, item, mask):
+        bnd = jax.tree.map(lambda x: x[t], bounds)
+        return link_upper_excess(robot, capsules, hulls, SplineRow(splines, t), item, ai, bi, margin, bnd, mask)
+
+    return jax.vmap(one)(traj, a, b, items, on_link)
 
 
 def hull_pairs_kernel(iterations: int):
