@@ -50,8 +50,8 @@ Order of work (all of it deterministic, so every scheduler takes the same decisi
 
 A screen may come before step 2 where only the verdict matters (LARC above its deepest level: a
 failing interval is bisected, its record dropped): :func:`link_upper_excess` computes step 2's
-upper bounds for the one (link, box) pair the capsule stage failed on; if none of the link's parts
-could pass, step 3 would not try that pair and step 5 would fail the interval, so steps 2-4 are
+upper bounds for the one (link, box) pair the capsule stage failed on; if any of the link's parts
+cannot pass, step 3 would not try that pair and step 5 would fail the interval, so steps 2-4 are
 skipped and the capsule record stands (on the Stage B set, 160 trajectories to depth 9, it spared
 13,251 of the 23,515 intervals that reached step 2, and cut step 4's triples from 18,168 to 9,793).
 
