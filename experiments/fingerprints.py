@@ -26,7 +26,9 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
+import inspect
 import json
+import textwrap
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -38,7 +40,7 @@ NOT_CODE = ("experiments.fingerprints",)
 (changing how it hashes changes every fingerprint anyway)."""
 
 __all__ = ["sha_file", "fingerprint", "code_closure", "code_fingerprint", "module_imports", "normalised_source",
-           "environment"]
+           "source_fingerprint", "environment"]
 
 
 def sha_file(path: str | Path) -> str:
@@ -101,6 +103,30 @@ def normalised_source(path: Path) -> str:
     """The module's code without comments, docstrings or formatting (``ast.unparse`` of the
     docstring-free tree)."""
     return ast.unparse(_strip_docstrings(ast.parse(Path(path).read_text(), filename=str(path))))
+
+
+def _portable(value) -> str:
+    """``repr`` of a constant, a path inside the repository written relative to it (a clone
+    elsewhere has the same fingerprints)."""
+    if isinstance(value, Path):
+        try:
+            return repr(value.resolve().relative_to(ROOT).as_posix())
+        except ValueError:
+            return repr(str(value))
+    return repr(value)
+
+
+def source_fingerprint(namespace: dict, *objects) -> str:
+    """SHA-256 of a driver stage's own code, finer than its module's import closure: the public
+    constants of ``namespace`` (a module's ``globals()``: upper-case names not starting with
+    ``_``, paths relative to the repository) and the normalised source of ``objects`` (functions
+    or classes, without comments or docstrings, as :func:`normalised_source`)."""
+    consts = {k: _portable(v) for k, v in namespace.items() if k.isupper() and not k.startswith("_")}
+    h = hashlib.sha256(json.dumps(consts, sort_keys=True).encode())
+    for o in objects:
+        tree = _strip_docstrings(ast.parse(textwrap.dedent(inspect.getsource(o))))
+        h.update(b"\0" + ast.unparse(tree).encode())
+    return h.hexdigest()
 
 
 def module_imports(path: Path, name: str) -> set[str]:

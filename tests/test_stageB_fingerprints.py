@@ -68,6 +68,34 @@ def test_fingerprint_changes_with_data_params_and_code(tmp_path):
     assert base != fingerprint([f], {"k": 1}, code=["experiments.tables"])
 
 
+
+def test_source_fingerprint_is_the_code_and_constants_not_the_clone(tmp_path, monkeypatch):
+    """A driver stage's own code (experiments.tightness_kinds, boundary_kinds): the same in a
+    clone elsewhere (paths are written relative to the repository), blind to docstrings and to
+    private names (a worker's cache), changed by a constant or by what a function does."""
+    from experiments import fingerprints as fp
+
+    here = {"ROOT": fp.ROOT, "SOURCE": fp.ROOT / "results" / "x", "PAIRS": 6, "_WORKER": {}}
+    clone = tmp_path / "elsewhere"
+    clone.mkdir()
+    funcs = {}
+    for name, text in (("a", 'def stage(x):\n    """Doc."""\n    return x + 1\n'),
+                       ("b", "def stage(x):\n    # a comment\n    return (x +\n            1)\n"),
+                       ("c", "def stage(x):\n    return x + 2\n")):
+        path = tmp_path / f"{name}.py"
+        path.write_text(text)
+        scope = {}
+        exec(compile(text, str(path), "exec"), scope)
+        funcs[name] = scope["stage"]
+    base = fp.source_fingerprint(here, funcs["a"])
+    assert base == fp.source_fingerprint(here, funcs["b"]) != fp.source_fingerprint(here, funcs["c"])
+    assert base == fp.source_fingerprint(dict(here, _WORKER={"truth": object()}), funcs["a"])
+    assert base != fp.source_fingerprint(dict(here, PAIRS=7), funcs["a"])
+    monkeypatch.setattr(fp, "ROOT", clone)
+    assert base == fp.source_fingerprint(dict(here, ROOT=clone, SOURCE=clone / "results" / "x"), funcs["a"])
+    assert base != fp.source_fingerprint(dict(here, ROOT=clone, SOURCE=clone / "results" / "y"), funcs["a"])
+
+
 def test_discussion_quotes_numbers_only_through_placeholders():
     """Every number in the hand-written discussion is a {{placeholder}} filled in from the
     tables; a rerun rewrites them all."""
