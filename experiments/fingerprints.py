@@ -98,11 +98,16 @@ def _strip_docstrings(tree: ast.AST) -> ast.AST:
     return tree
 
 
+def _normalised(text: str, filename: str = "<unknown>") -> str:
+    """Python source without comments, docstrings or formatting (``ast.unparse`` of the
+    docstring-free tree)."""
+    return ast.unparse(_strip_docstrings(ast.parse(text, filename=filename)))
+
+
 @functools.lru_cache(maxsize=None)
 def normalised_source(path: Path) -> str:
-    """The module's code without comments, docstrings or formatting (``ast.unparse`` of the
-    docstring-free tree)."""
-    return ast.unparse(_strip_docstrings(ast.parse(Path(path).read_text(), filename=str(path))))
+    """The module's code without comments, docstrings or formatting (:func:`_normalised`)."""
+    return _normalised(Path(path).read_text(), str(path))
 
 
 def _portable(value) -> str:
@@ -124,8 +129,7 @@ def source_fingerprint(namespace: dict, *objects) -> str:
     consts = {k: _portable(v) for k, v in namespace.items() if k.isupper() and not k.startswith("_")}
     h = hashlib.sha256(json.dumps(consts, sort_keys=True).encode())
     for o in objects:
-        tree = _strip_docstrings(ast.parse(textwrap.dedent(inspect.getsource(o))))
-        h.update(b"\0" + ast.unparse(tree).encode())
+        h.update(b"\0" + _normalised(textwrap.dedent(inspect.getsource(o))).encode())
     return h.hexdigest()
 
 

@@ -68,7 +68,6 @@ def test_fingerprint_changes_with_data_params_and_code(tmp_path):
     assert base != fingerprint([f], {"k": 1}, code=["experiments.tables"])
 
 
-
 def test_source_fingerprint_is_the_code_and_constants_not_the_clone(tmp_path, monkeypatch):
     """A driver stage's own code (experiments.tightness_kinds, boundary_kinds): the same in a
     clone elsewhere (paths are written relative to the repository), blind to docstrings and to
