@@ -15,7 +15,9 @@ Sections (each printed and written into the JSON):
   a warm compilation cache, and a wrong option's refusal (:mod:`experiments.bench_coldstart`).
 * ``manifest`` — ``larc certify --manifest`` of ``--manifest-n`` rows cycling through the
   tightness set's planned trajectories (``results/tightness``), default cascade, as one fresh
-  process with an empty compilation cache: wall time (compiling included) and peak RSS.
+  process with an empty compilation cache: wall time (compiling included) and peak RSS; and,
+  measured alone afterwards, the time to read one row's trajectory file, with its share of
+  that wall (:func:`_read_ms_per_row`).
 * ``kernel`` — XLA's cost analysis of the compiled interval kernel at the largest bucket on the
   Stage B scenes: flops and bytes accessed per interval, against the machine's nominal peak.
 * ``reference`` — the NumPy float64 reference (the paper's Algorithm 1) on the same
@@ -272,9 +274,26 @@ def section_manifest(n: int) -> dict:
             raise RuntimeError(f"larc certify --manifest failed:\n{p.stderr[-2000:]}")
         run = json.loads(p.stdout.strip().splitlines()[-1])
         df = pd.read_parquet(Path(d) / "out.parquet")
+    read_ms = _read_ms_per_row(rows)
     return {"n": n, "distinct_trajectories": len(rows), "rows_written": len(df),
             "certified": int(df["certified"].sum()), "wall_s": wall, "peak_rss_mb": run["peak_rss_mb"],
-            "trajectories_per_s": n / wall}
+            "trajectories_per_s": n / wall, "read_ms_per_row": read_ms, "read_share": n * read_ms / 1e3 / wall}
+
+
+def _read_ms_per_row(rows: list[tuple[Path, Path]]) -> float:
+    """Milliseconds to read one manifest row's trajectory file (``read_trajectory`` with the robot,
+    as a manifest chunk reads it), measured alone in this process: median over the distinct files
+    of the best of 3 reads. Times the rows of the manifest section, it is the part of that run's
+    wall spent reading files (scenes are read once per chunk, and not counted)."""
+    import larc_jax as lj
+    from larc_jax.model.trajectory_files import read_trajectory
+
+    robot = lj.load_robot()
+    per_file = []
+    for path, _ in rows:
+        best = min(_timed(lambda: read_trajectory(path, robot))[1] for _ in range(3))
+        per_file.append(best)
+    return 1e3 * statistics.median(per_file)
 
 
 def _print(prefix: str, obj) -> None:
@@ -390,7 +409,9 @@ def markdown(out: dict) -> str:
                       f"trajectories of the tightness set, cycled), default cascade, one fresh process with an empty "
                       f"compilation cache: {m['wall_s']:.0f} s ({m['trajectories_per_s']:.1f} trajectories/s, "
                       f"compiling included), peak RSS {m['peak_rss_mb']:,.0f} MB (target ≤ 10 min, ≤ 4 GB); "
-                      f"{m['certified']:,} certified."]
+                      f"{m['certified']:,} certified. Reading a row's trajectory file alone takes "
+                      f"{m['read_ms_per_row']:.1f} ms (median of the distinct files): {100 * m['read_share']:.0f} % of "
+                      f"that wall."]
     lines += [
         "",
         "| kernel (XLA cost analysis, per interval) | flops | bytes accessed |", "|---|---|---|",
