@@ -2,6 +2,17 @@
 
     python -m experiments.bench [--json results/bench/bench_cpu.json] [--quick]
 
+On a GPU set ``XLA_PYTHON_CLIENT_PREALLOCATE=false``: the cold-start, manifest and RSS sections
+start fresh processes beside this one, and by default each JAX process takes most of the GPU's
+memory. The committed GPU figures (an NVIDIA H200 lent for one session, 15 minutes in all) came
+from two runs, each on a freshly started machine::
+
+    python -m experiments.bench --json results/bench/bench_gpu.json --skip-audit --skip-reference \
+        --rss-n '' --manifest-n 2000 --peak-gflops 34000   # stopped at its limit after ``capsules``
+    python -m experiments.bench --json results/bench/bench_gpu.json --render
+    python -m experiments.bench --json results/bench/bench_gpu_hull.json --enclosures hull \
+        --skip-paired --stageB-only --peak-gflops 34000
+
 Sections (each printed and written into the JSON):
 
 * ``stageB`` — the 160 committed Stage B trajectories with their scenes, for the paper's capsule
@@ -31,6 +42,11 @@ Sections (each printed and written into the JSON):
   for each N of ``--rss-n``, one subprocess per N (``experiments.bench_rss``), streamed, and in
   one ``certify`` call for N up to :data:`MAX_CALL_N` (a call holds all its inputs and leaves).
 
+Every section is written into the JSON as soon as it is measured, so a run stopped part-way keeps
+what it finished (the Markdown table is written at the end, or from such a file by ``--render``). Each Stage B method records
+``decisions_sha256`` (:func:`decisions_sha256`): equal hashes from two machines (a CPU and a GPU)
+mean the same decision and the same number of evaluations for every trajectory.
+
 The kernel, reference, audit, stream and RSS sections measure the paper's capsule test
 (``enclosure="capsules"``); :mod:`experiments.bench_cascade` breaks the hull cascade's cost down
 by stage.
@@ -58,7 +74,7 @@ ROOT = Path(__file__).resolve().parent.parent
 STAGEB_DIR = ROOT / "results" / "stageB" / "dataset" / "trajectories"
 SCENES_DIR = ROOT / "configs" / "scenes"
 
-__all__ = ["stageB_dataset", "stageB_like", "main"]
+__all__ = ["stageB_dataset", "stageB_like", "decisions_sha256", "main"]
 
 ENCLOSURE = "capsules"
 """The interval test of the kernel, reference, audit, stream and RSS sections (module docstring)."""
@@ -118,7 +134,18 @@ def real_pairs(result, capsules, scenes) -> int:
     return int((result.evaluations * boxes).sum()) * capsules.n_capsules
 
 
-def section_stageB(robot, capsules, trajs, scenes, enclosure: str) -> dict:
+def decisions_sha256(result) -> str:
+    """SHA-256 of a result's per-trajectory decisions and evaluation counts, in input order: two
+    runs (two machines, a CPU and a GPU) made the same decisions through the same tree when the
+    hashes are equal."""
+    import hashlib
+
+    h = hashlib.sha256(np.asarray(result.certified, dtype=np.uint8).tobytes())
+    h.update(np.asarray(result.evaluations, dtype=np.int64).tobytes())
+    return h.hexdigest()
+
+
+def section_stageB(robot, capsules, trajs, scenes, enclosure: str, paired: bool = True) -> dict:
     from larc_jax import certify
 
     out = {"n_trajectories": len(trajs), "enclosure": enclosure}
@@ -130,10 +157,12 @@ def section_stageB(robot, capsules, trajs, scenes, enclosure: str) -> dict:
             "certified": int(res.certified.sum()), "evaluations": evals, "real_pairs": pairs,
             "first_call_s": t_first, "warm_s": t_warm, "compile_s": max(0.0, t_first - t_warm),
             "intervals_per_s": evals / t_warm, "pairs_per_s": pairs / t_warm,
+            "decisions_sha256": decisions_sha256(res),
         }
     out["fine_over_larc_time"] = out["fine"]["warm_s"] / out["larc"]["warm_s"]
     out["fine_over_larc_evaluations"] = out["fine"]["evaluations"] / out["larc"]["evaluations"]
-    out["paired"] = section_paired(robot, capsules, trajs, scenes, enclosure)
+    if paired:
+        out["paired"] = section_paired(robot, capsules, trajs, scenes, enclosure)
     return out
 
 
@@ -310,11 +339,27 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     p.add_argument("--skip-reference", action="store_true")
     p.add_argument("--skip-audit", action="store_true")
+    p.add_argument("--enclosures", default=",".join(ENCLOSURES),
+                   help="comma-separated enclosures of the Stage B section (a short run on a lent machine)")
+    p.add_argument("--skip-paired", action="store_true", help="leave out the one-trajectory-per-call timings")
+    p.add_argument("--stageB-only", action="store_true", help="only the Stage B section")
     p.add_argument("--stream-n", type=int, default=4096)
     p.add_argument("--rss-n", default="1000,10000,100000", help="comma-separated N for the RSS section ('' skips)")
     p.add_argument("--manifest-n", type=int, default=20_000, help="rows of the manifest section (0 skips)")
     p.add_argument("--peak-gflops", type=float, help="nominal float64 peak of the machine (module doc)")
+    p.add_argument("--render", action="store_true",
+                   help="only write the Markdown table of the --json file an earlier run wrote (one stopped part-way)")
     args = p.parse_args(argv)
+    for enc in args.enclosures.split(","):
+        if enc not in ENCLOSURES:
+            p.error(f"--enclosures: {enc!r} is not one of {', '.join(ENCLOSURES)}")
+    if args.render:
+        if not args.json:
+            p.error("--render needs --json FILE")
+        from larc_jax.io import atomic_write_text
+
+        atomic_write_text(Path(args.json).with_suffix(".md"), markdown(json.loads(Path(args.json).read_text())))
+        return 0
 
     import jax
 
@@ -333,69 +378,99 @@ def main(argv=None) -> int:
                        "device": str(jax.devices()[0]), "jax": jax.__version__,
                        "peak_gflops_float64_nominal": peak}}
     t0 = time.perf_counter()
-    out["stageB"] = {enc: section_stageB(robot, capsules, trajs, scenes, enc) for enc in ENCLOSURES}
+
+    def checkpoint() -> None:
+        # A run stopped part-way (a time limit, a lost machine) keeps every section it finished.
+        if args.json:
+            atomic_write_json(args.json, out)
+
+    def finish() -> int:
+        out["bench_wall_s"] = time.perf_counter() - t0
+        _print("", out)
+        if args.json:
+            checkpoint()
+            atomic_write_text(Path(args.json).with_suffix(".md"), markdown(out))
+        return 0
+
+    out["stageB"] = {}
+    for enc in args.enclosures.split(","):
+        out["stageB"][enc] = section_stageB(robot, capsules, trajs, scenes, enc, paired=not args.skip_paired)
+        checkpoint()
+    if args.stageB_only:
+        return finish()
     larc_s = out["stageB"][ENCLOSURE]["larc"]["warm_s"]
     out["kernel"] = section_kernel(robot, capsules, trajs, scenes, peak)
     out["kernel"]["achieved_gflops_larc"] = (  # intervals run through the broad-phase kernel
         out["kernel"]["broad_phase"]["flops_per_interval"] * out["stageB"][ENCLOSURE]["larc"]["intervals_per_s"] / 1e9)
     out["kernel"]["fraction_of_peak"] = out["kernel"]["achieved_gflops_larc"] / peak
+    checkpoint()
     if not args.skip_reference:
         out["reference"] = section_reference(robot, capsules, trajs, scenes, larc_s)
+        checkpoint()
     if not args.skip_audit:
         out["audit"] = section_audit(larc_s)
+        checkpoint()
     out["stream"] = section_stream(robot, capsules, trajs, scenes, args.stream_n)
+    checkpoint()
     ns = [int(x) for x in args.rss_n.split(",") if x.strip()]
     # One certify call holds every input trajectory and every leaf in memory at once, so it is
     # measured up to 10^4; streaming (constant memory) at every N.
     out["rss"] = section_rss([n for n in ns if n <= MAX_CALL_N], "call") + section_rss(ns, "stream")
+    checkpoint()
     from experiments import bench_coldstart
 
     out["coldstart"] = bench_coldstart.measure(3)
+    checkpoint()
     if args.manifest_n:
         out["manifest"] = section_manifest(args.manifest_n)
-    out["bench_wall_s"] = time.perf_counter() - t0
-    _print("", out)
-    if args.json:
-        atomic_write_json(args.json, out)
-        atomic_write_text(Path(args.json).with_suffix(".md"), markdown(out))
-    return 0
+    return finish()
 
 
 def markdown(out: dict) -> str:
-    """The README's benchmark table, from one run's figures (written beside the JSON)."""
-    k = out["kernel"]
+    """The README's benchmark table, from one run's figures (written beside the JSON). A run that
+    measured only part of the sections (``--enclosures``, ``--skip-paired``, ``--stageB-only``, or
+    one stopped part-way) gets the rows of what it measured."""
     runs = out["stageB"]
-    cap, hull = runs["capsules"], runs["hull"]
-    cols = [(cap, "larc"), (cap, "fine"), (hull, "larc"), (hull, "fine")]
+    names = {"capsules": "capsules", "hull": "cascade"}
+    encs = [e for e in ENCLOSURES if e in runs]
+    cols = [(runs[e], m) for e in encs for m in ("larc", "fine")]
+    paired = all("paired" in runs[e] for e in encs)
 
     def row(label: str, fmt) -> str:
         return f"| {label} | " + " | ".join(fmt(r[m]) for r, m in cols) + " |"
 
+    def ratio_row(label: str, fmt, target: str) -> str:
+        return f"| {label} | " + " | ".join(fmt(runs[e]) for e in encs) + (f" | {target} |" if target else " | |")
+
     lines = [
-        f"Stage B: {cap['n_trajectories']} trajectories, {out['machine']['cores']} CPU cores "
-        f"({out['machine']['device']}), one run:", "",
-        "| | capsules: LARC | capsules: fine | cascade: LARC | cascade: fine |", "|---|---|---|---|---|",
+        f"Stage B: {runs[encs[0]]['n_trajectories']} trajectories, JAX device `{out['machine']['device']}`, "
+        f"{out['machine']['cores']} CPU cores, one run:", "",
+        "| | " + " | ".join(f"{names[e]}: {m}" for e in encs for m in ("LARC", "fine")) + " |",
+        "|---|" + "---|" * len(cols),
         row("certified", lambda r: f"{r['certified']}"),
         row("interval evaluations", lambda r: f"{r['evaluations']:,}"),
         row("warm whole-set time", lambda r: f"{r['warm_s']:.3f} s"),
         row("compile time (first call − warm call)", lambda r: f"{r['compile_s']:.2f} s"),
         row("intervals / s", lambda r: f"{r['intervals_per_s']:,.0f}"),
         row("real capsule–box pairs / s", lambda r: f"{r['pairs_per_s']:,.0f}"),
-        "| one trajectory per call: median time | " + " | ".join(
-            f"{r['paired'][m + '_median_ms']:.2f} ms" for r, m in cols) + " |",
+        *(["| one trajectory per call: median time | " + " | ".join(
+            f"{r['paired'][m + '_median_ms']:.2f} ms" for r, m in cols) + " |"] if paired else []),
         "",
-        "| fine / LARC | capsules | cascade | target (issue 20) |", "|---|---|---|---|",
-        f"| interval evaluations | {cap['fine_over_larc_evaluations']:.2f}× | {hull['fine_over_larc_evaluations']:.2f}× | |",
-        f"| warm whole-set time | {cap['fine_over_larc_time']:.2f}× | {hull['fine_over_larc_time']:.2f}× | "
-        f"≥ 0.7 × evaluations ({0.7 * cap['fine_over_larc_evaluations']:.2f}× / "
-        f"{0.7 * hull['fine_over_larc_evaluations']:.2f}×) |",
-        f"| one trajectory per call, median of per-trajectory ratios | {cap['paired']['median_fine_over_larc']:.2f}× | "
-        f"{hull['paired']['median_fine_over_larc']:.2f}× | ≥ 1.5× |",
-        "",
-        f"The cascade costs LARC {hull['larc']['warm_s'] / cap['larc']['warm_s']:.2f}× the capsule test on the whole "
-        f"set and {hull['paired']['larc_median_ms'] / cap['paired']['larc_median_ms']:.2f}× one trajectory per call "
-        f"(target ≤ 2×).",
+        "| fine / LARC | " + " | ".join(names[e] for e in encs) + " | target (issue 20) |",
+        "|---|" + "---|" * (len(encs) + 1),
+        ratio_row("interval evaluations", lambda r: f"{r['fine_over_larc_evaluations']:.2f}×", ""),
+        ratio_row("warm whole-set time", lambda r: f"{r['fine_over_larc_time']:.2f}×",
+               "≥ 0.7 × evaluations (" + " / ".join(f"{0.7 * runs[e]['fine_over_larc_evaluations']:.2f}×"
+                                                     for e in encs) + ")"),
+        *([ratio_row("one trajectory per call, median of per-trajectory ratios",
+                  lambda r: f"{r['paired']['median_fine_over_larc']:.2f}×", "≥ 1.5×")] if paired else []),
     ]
+    if len(encs) == 2:
+        cap, hull = runs["capsules"], runs["hull"]
+        per_call = (f" and {hull['paired']['larc_median_ms'] / cap['paired']['larc_median_ms']:.2f}× one trajectory "
+                    f"per call" if paired else "")
+        lines += ["", f"The cascade costs LARC {hull['larc']['warm_s'] / cap['larc']['warm_s']:.2f}× the capsule test "
+                      f"on the whole set{per_call} (target ≤ 2×)."]
     if "coldstart" in out:
         c = out["coldstart"]
         lines += ["", f"| `{c['command']}`, a fresh process (median of {c['repeats']}) | wall | target |",
@@ -412,6 +487,9 @@ def markdown(out: dict) -> str:
                       f"{m['certified']:,} certified. Reading a row's trajectory file alone takes "
                       f"{m['read_ms_per_row']:.1f} ms (median of the distinct files): {100 * m['read_share']:.0f} % of "
                       f"that wall."]
+    if "kernel" not in out:
+        return "\n".join(lines) + "\n"
+    k = out["kernel"]
     lines += [
         "",
         "| kernel (XLA cost analysis, per interval) | flops | bytes accessed |", "|---|---|---|",
@@ -429,10 +507,14 @@ def markdown(out: dict) -> str:
                       f"**{out['audit']['audit_over_larc']:.1f}×**")
     if ratios:
         lines += ["", "; ".join(ratios) + " (same trajectories, same run)."]
+    if "stream" not in out:
+        return "\n".join(lines) + "\n"
     st = out["stream"]
     lines += ["", f"Streaming (`certify_stream`, {st['n']:,} Stage B-like trajectories): "
-                  f"{st['trajectories_per_s']:,.0f} trajectories/s, {st['intervals_per_s']:,.0f} intervals/s.", "",
-              "| N trajectories | one `certify` call: peak RSS, time | streamed: peak RSS, time |", "|---|---|---|"]
+                  f"{st['trajectories_per_s']:,.0f} trajectories/s, {st['intervals_per_s']:,.0f} intervals/s."]
+    if not out.get("rss"):
+        return "\n".join(lines) + "\n"
+    lines += ["", "| N trajectories | one `certify` call: peak RSS, time | streamed: peak RSS, time |", "|---|---|---|"]
     rows = {}
     for r in out["rss"]:
         cell = (f"{r['peak_rss_mb']:,.0f} MB, {r['s']:.0f} s" if "peak_rss_mb" in r

@@ -163,11 +163,13 @@ def _demote(text: str) -> str:
     return "\n".join(lines)
 
 
-def test_benchmark_table_is_the_generated_one():
-    """The README's benchmark table is results/bench/bench_cpu.md (experiments.bench --json)."""
-    begin = "<!-- bench table: results/bench/bench_cpu.md, written by experiments.bench -->"
-    i, j = README.index(begin) + len(begin), README.index("<!-- end of bench table -->")
-    assert README[i:j].strip() == (ROOT / "results" / "bench" / "bench_cpu.md").read_text().strip()
+@pytest.mark.parametrize("name", ["bench_cpu", "bench_gpu", "bench_gpu_hull"])
+def test_benchmark_table_is_the_generated_one(name):
+    """The README's benchmark tables are results/bench/NAME.md (experiments.bench --json)."""
+    begin = f"<!-- bench table: results/bench/{name}.md, written by experiments.bench -->"
+    i = README.index(begin) + len(begin)
+    j = README.index("<!-- end of bench table -->", i)
+    assert README[i:j].strip() == (ROOT / "results" / "bench" / f"{name}.md").read_text().strip()
 
 
 def test_obstacles_table_is_the_generated_one():
