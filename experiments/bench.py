@@ -43,9 +43,10 @@ Sections (each printed and written into the JSON):
   one ``certify`` call for N up to :data:`MAX_CALL_N` (a call holds all its inputs and leaves).
 
 Every section is written into the JSON as soon as it is measured, so a run stopped part-way keeps
-what it finished (the Markdown table is written at the end, or from such a file by ``--render``). Each Stage B method records
-``decisions_sha256`` (:func:`decisions_sha256`): equal hashes from two machines (a CPU and a GPU)
-mean the same decision and the same number of evaluations for every trajectory.
+what it finished (the Markdown table is written at the end, or from such a file by ``--render``).
+Each Stage B method records ``decisions_sha256`` (:func:`decisions_sha256`): equal hashes from two
+machines (a CPU and a GPU) mean the same decision and the same number of evaluations for every
+trajectory.
 
 The kernel, reference, audit, stream and RSS sections measure the paper's capsule test
 (``enclosure="capsules"``); :mod:`experiments.bench_cascade` breaks the hull cascade's cost down
@@ -136,8 +137,8 @@ def real_pairs(result, capsules, scenes) -> int:
 
 def decisions_sha256(result) -> str:
     """SHA-256 of a result's per-trajectory decisions and evaluation counts, in input order: two
-    runs (two machines, a CPU and a GPU) made the same decisions through the same tree when the
-    hashes are equal."""
+    runs (two machines, a CPU and a GPU) with equal hashes certified the same trajectories with the
+    same number of interval evaluations each."""
     import hashlib
 
     h = hashlib.sha256(np.asarray(result.certified, dtype=np.uint8).tobytes())
@@ -350,12 +351,16 @@ def main(argv=None) -> int:
     p.add_argument("--render", action="store_true",
                    help="only write the Markdown table of the --json file an earlier run wrote (one stopped part-way)")
     args = p.parse_args(argv)
-    for enc in args.enclosures.split(","):
+    enclosures = list(dict.fromkeys(args.enclosures.split(",")))
+    for enc in enclosures:
         if enc not in ENCLOSURES:
             p.error(f"--enclosures: {enc!r} is not one of {', '.join(ENCLOSURES)}")
+    if ENCLOSURE not in enclosures and not args.stageB_only:
+        p.error(f"--enclosures without {ENCLOSURE!r} needs --stageB-only (the later sections are "
+                f"compared with the {ENCLOSURE!r} run)")
     if args.render:
-        if not args.json:
-            p.error("--render needs --json FILE")
+        if not args.json or not Path(args.json).is_file():
+            p.error("--render needs --json FILE, an existing file an earlier run wrote")
         from larc_jax.io import atomic_write_text
 
         atomic_write_text(Path(args.json).with_suffix(".md"), markdown(json.loads(Path(args.json).read_text())))
@@ -393,7 +398,7 @@ def main(argv=None) -> int:
         return 0
 
     out["stageB"] = {}
-    for enc in args.enclosures.split(","):
+    for enc in enclosures:
         out["stageB"][enc] = section_stageB(robot, capsules, trajs, scenes, enc, paired=not args.skip_paired)
         checkpoint()
     if args.stageB_only:
@@ -460,10 +465,10 @@ def markdown(out: dict) -> str:
         "|---|" + "---|" * (len(encs) + 1),
         ratio_row("interval evaluations", lambda r: f"{r['fine_over_larc_evaluations']:.2f}×", ""),
         ratio_row("warm whole-set time", lambda r: f"{r['fine_over_larc_time']:.2f}×",
-               "≥ 0.7 × evaluations (" + " / ".join(f"{0.7 * runs[e]['fine_over_larc_evaluations']:.2f}×"
-                                                     for e in encs) + ")"),
+                  "≥ 0.7 × evaluations (" + " / ".join(f"{0.7 * runs[e]['fine_over_larc_evaluations']:.2f}×"
+                                                        for e in encs) + ")"),
         *([ratio_row("one trajectory per call, median of per-trajectory ratios",
-                  lambda r: f"{r['paired']['median_fine_over_larc']:.2f}×", "≥ 1.5×")] if paired else []),
+                     lambda r: f"{r['paired']['median_fine_over_larc']:.2f}×", "≥ 1.5×")] if paired else []),
     ]
     if len(encs) == 2:
         cap, hull = runs["capsules"], runs["hull"]

@@ -73,7 +73,16 @@ def test_wrong_enclosure_refused_before_loading(capsys):
     assert "'hul' is not one of capsules, hull" in capsys.readouterr().err
 
 
-def test_render_needs_its_figures(capsys):
+def test_later_sections_need_the_capsule_run(capsys):
+    """The kernel, reference and audit sections compare with the capsule run: without it, only the
+    Stage B section may run."""
     with pytest.raises(SystemExit) as e:
-        bench.main(["--render"])
-    assert e.value.code == 2 and "--render needs --json" in capsys.readouterr().err
+        bench.main(["--enclosures", "hull"])
+    assert e.value.code == 2 and "needs --stageB-only" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["--render"], ["--render", "--json", "no/such/bench.json"]])
+def test_render_needs_its_figures(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        bench.main(argv)
+    assert e.value.code == 2 and "--render needs --json FILE" in capsys.readouterr().err
