@@ -86,3 +86,15 @@ def test_render_needs_its_figures(argv, capsys):
     with pytest.raises(SystemExit) as e:
         bench.main(argv)
     assert e.value.code == 2 and "--render needs --json FILE" in capsys.readouterr().err
+
+
+def test_device_tree_table_is_rendered_and_agrees():
+    """experiments.bench_tree's committed table renders from its figures, and the device tree made
+    the host frontier's evaluations, leaves and decisions in that run."""
+    from experiments import bench_tree
+
+    figures = _figures("tree_cpu")
+    assert bench_tree.table(figures) == (RESULTS / "tree_cpu.md").read_text()
+    agreement = figures["agreement"]
+    assert agreement["evaluations_equal"] and agreement["leaves_equal"] and agreement["decisions_equal"]
+    assert agreement["guards_equal"] and agreement["clearance_max_abs_diff_m"] < 1e-12

@@ -172,6 +172,13 @@ def test_benchmark_table_is_the_generated_one(name):
     assert README[i:j].strip() == (ROOT / "results" / "bench" / f"{name}.md").read_text().strip()
 
 
+def test_tree_table_is_the_generated_one():
+    """The README's device-tree table is results/bench/tree_cpu.md (experiments.bench_tree)."""
+    begin = "<!-- tree table: results/bench/tree_cpu.md, written by experiments.bench_tree -->"
+    i, j = README.index(begin) + len(begin), README.index("<!-- end of tree table -->")
+    assert README[i:j].strip() == (ROOT / "results" / "bench" / "tree_cpu.md").read_text().strip()
+
+
 def test_obstacles_table_is_the_generated_one():
     """The README's obstacle-kind cost table is results/bench/obstacles_cpu.md (experiments.bench_obstacles)."""
     begin = "<!-- obstacles table: results/bench/obstacles_cpu.md, written by experiments.bench_obstacles -->"

@@ -1,0 +1,157 @@
+"""Benchmark: the device tree (:mod:`larc_jax.engine.tree`) against the host frontier (issue 20).
+
+    python -m experiments.bench_tree [--json results/bench/tree_cpu.json] [--every 10] [--repeats 5]
+
+The committed Stage B set, the capsule test (the device tree runs nothing else yet), float64, one
+prepared batch per run, so that only the scheduler differs (``certify``'s own work around it, the
+same for both, is left out):
+
+* **whole set** (160 trajectories in one call): the host frontier (``larc``'s scheduler today,
+  one kernel call per depth), the device tree (one program), and fixed-fine (512 intervals a
+  trajectory); first call (compiling: each scheduler's own shapes; the host frontier's and fine's
+  kernel shapes overlap, so fine's first call is measured after LARC's) and the best of
+  ``--repeats`` warm calls;
+* **one trajectory per call** (every ``--every``-th trajectory): the median over the trajectories
+  of each one's median warm call, per scheduler;
+* **agreement**: the device tree's evaluations per depth and trajectory, its leaves (trajectory,
+  depth, index, ends) and decisions against the host frontier's, and the largest difference of a
+  leaf's clearance (XLA compiles the kernel inside the loop with its own fusions).
+
+Writes the JSON and ``results/bench/tree_cpu.md`` (the table the README quotes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+TABLE = ROOT / "results" / "bench" / "tree_cpu.md"
+MAX_DEPTH = 9
+
+
+def _timed(fn):
+    t = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t
+
+
+def _schedulers(batch, scenes, n: int):
+    """Each scheduler on ``batch`` (prepared from ``n`` trajectories in ``scenes``): a call
+    returning its result."""
+    from larc_jax.engine.certify import _Names, _fixed, _larc_batched  # noqa: PLC2701 - the benchmark measures internals
+    from larc_jax.engine.tree import run_tree
+
+    names = _Names(scenes)
+    return {
+        "host frontier": lambda: _larc_batched(batch, n, names, MAX_DEPTH, None),
+        "device tree": lambda: run_tree(batch, n, MAX_DEPTH),
+        "fixed-fine": lambda: _fixed(batch, n, names, MAX_DEPTH, MAX_DEPTH, None),
+    }
+
+
+def _batch(robot, capsules, trajs, scenes):
+    """The trajectories prepared as ``certify`` prepares them for the capsule test."""
+    from larc_jax.engine.batch import prepare
+    from larc_jax.engine.certify import run_spec
+    from larc_jax.leaf.interval import trajectory_roundings
+
+    spec = run_spec(enclosure="capsules")
+    caps = capsules.with_padding(spec.padding_m)
+    bounds = trajectory_roundings(trajs, robot, caps, np.float64, None)
+    return prepare(trajs, scenes, robot, caps, spec.margin_m, np.float64, bounds, None)
+
+
+def agreement(host, tree) -> dict:
+    """How the device tree's result compares with the host frontier's."""
+    frontier, leaves = host
+    same_nodes = all(np.array_equal(getattr(tree, f), getattr(leaves, f)) for f in ("traj", "depth", "index", "t0", "t1"))
+    g_host, g_tree = leaves.clearance_m, tree.record.clearance_m
+    finite = np.isfinite(g_host) & np.isfinite(g_tree)
+    return {
+        "evaluations": int(frontier.sum()), "evaluations_equal": bool(np.array_equal(frontier, tree.frontier)),
+        "leaves": len(leaves), "leaves_equal": bool(same_nodes and len(leaves) == len(tree.traj)),
+        "decisions_equal": bool(same_nodes and np.array_equal(leaves.certified, tree.record.stage > 0)),
+        "guards_equal": bool(same_nodes and np.array_equal(leaves.guard_m, tree.record.guard_m)),
+        "clearance_bit_identical": int(np.sum(g_host[finite] == g_tree[finite]) + np.sum(~finite)),
+        "clearance_max_abs_diff_m": float(np.max(np.abs(g_host[finite] - g_tree[finite]), initial=0.0)),
+    }
+
+
+def table(out: dict) -> str:
+    w, p, a = out["whole_set"], out["paired"], out["agreement"]
+    names = list(w)
+    rows = [
+        f"Stage B: {out['trajectories']} trajectories, capsule test, float64, JAX device `{out['device']}`, "
+        f"{out['cpu_count']} CPU cores, one run:",
+        "",
+        "| | " + " | ".join(names) + " |",
+        "|---|" + "---|" * len(names),
+        "| whole set: warm call | " + " | ".join(f"{w[m]['warm_s']:.3f} s" for m in names) + " |",
+        "| whole set: first call (compiling) | " + " | ".join(f"{w[m]['first_s']:.1f} s" for m in names) + " |",
+        f"| one trajectory per call ({p['n']}): median | " + " | ".join(f"{p[m]:.2f} ms" for m in names) + " |",
+        "",
+        f"Device tree against the host frontier: evaluations {a['evaluations']:,} "
+        f"({'equal' if a['evaluations_equal'] else 'DIFFERENT'} per trajectory and depth); leaves {a['leaves']:,} "
+        f"({'the same intervals' if a['leaves_equal'] else 'DIFFERENT intervals'}, decisions "
+        f"{'equal' if a['decisions_equal'] else 'DIFFERENT'}, guards {'equal' if a['guards_equal'] else 'DIFFERENT'}); "
+        f"clearance bit-identical on {a['clearance_bit_identical']:,} leaves, elsewhere within "
+        f"{a['clearance_max_abs_diff_m']:.1e} m.",
+    ]
+    return "\n".join(rows) + "\n"
+
+
+def _machine() -> dict:
+    import jax
+
+    return dict(device=str(jax.devices()[0]), machine=platform.processor() or platform.machine(),
+                cpu_count=os.cpu_count(), load_average_start=os.getloadavg())
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", help="write the figures as JSON (and the table beside it)")
+    parser.add_argument("--repeats", type=int, default=5, help="warm calls per measurement")
+    parser.add_argument("--every", type=int, default=10, help="one trajectory per call: every EVERY-th trajectory")
+    args = parser.parse_args(argv)
+    from experiments.bench import stageB_dataset
+    from larc_jax.enclosure.robot_file import load_robot_file
+    from larc_jax.io import atomic_write_json, atomic_write_text
+
+    robot, capsules = load_robot_file(None)
+    trajs, scenes = stageB_dataset(robot)
+    out = {**_machine(), "trajectories": len(trajs), "repeats": args.repeats, "whole_set": {}}
+    batch = _batch(robot, capsules, trajs, scenes)
+    results = {}
+    for name, call in _schedulers(batch, scenes, len(trajs)).items():
+        results[name], first = _timed(call)
+        warm = min(_timed(call)[1] for _ in range(args.repeats))
+        out["whole_set"][name] = {"first_s": first, "warm_s": warm}
+        print(f"{name:14s} whole set: warm {warm:.3f} s, first call {first:.1f} s", flush=True)
+    out["agreement"] = agreement(results["host frontier"], results["device tree"])
+    per = {name: [] for name in out["whole_set"]}
+    picked = list(range(0, len(trajs), args.every))
+    for k in picked:
+        one = _batch(robot, capsules, trajs[k:k + 1], scenes[k:k + 1])
+        for name, call in _schedulers(one, scenes[k:k + 1], 1).items():
+            call()
+            per[name].append(1e3 * statistics.median(_timed(call)[1] for _ in range(args.repeats)))
+    out["paired"] = {"n": len(picked), **{name: statistics.median(v) for name, v in per.items()}}
+    out["load_average_end"] = os.getloadavg()
+    text = table(out)
+    print(text)
+    if args.json:  # the figures, then the table rendered from them
+        for path, write, data in ((Path(args.json), atomic_write_json, out),
+                                  (Path(args.json).with_suffix(".md"), atomic_write_text, text)):
+            write(path, data)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

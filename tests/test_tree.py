@@ -1,0 +1,130 @@
+"""The device tree (larc_jax.engine.tree) against the host frontier: the same intervals, leaves and
+decisions; its time ends against the NumPy dyadic ends, bit for bit."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from larc_jax.engine.batch import prepare
+from larc_jax.engine.certify import _Names, _larc_batched, run_spec  # noqa: PLC2701 - the host frontier is the reference
+from larc_jax.engine.tree import dyadic_ends_jnp, rebase_ends_jnp, run_tree, supports
+from larc_jax.leaf.interval import dyadic_ends, rebase_ends, trajectory_roundings
+from larc_jax.model.scene import Scene
+
+from .test_certify import random_scene, random_trajectory
+
+MAX_DEPTH = 9
+SMALL = dict(wide=32, narrow=4, leaf_capacity=64)
+"""Buffers small enough that a run needs many calls (the continuation path)."""
+
+
+def _batch(robot, capsules, trajs, scenes, dtype=np.float64, enclosure="capsules"):
+    spec = run_spec(enclosure=enclosure)
+    caps = capsules.with_padding(spec.padding_m)
+    bounds = trajectory_roundings(trajs, robot, caps, dtype, None)
+    return prepare(trajs, scenes, robot, caps, spec.margin_m, dtype, bounds, None), _Names(scenes)
+
+
+def _compare(batch, names, n, tree, ulps: float):
+    """The tree's leaves are the host frontier's, interval for interval, with the same decisions;
+    the clearance agrees to ``ulps`` units in the last place of the pair's shell (XLA compiles
+    the kernel inside the loop with its own fusions: the same bound, rounded within its guard)."""
+    frontier, leaves = _larc_batched(batch, n, names, MAX_DEPTH, None)
+    assert np.array_equal(tree.frontier, frontier)
+    for field in ("traj", "depth", "index", "t0", "t1"):
+        assert np.array_equal(getattr(tree, field), getattr(leaves, field)), field
+    rec = tree.record
+    assert np.array_equal(rec.stage > 0, leaves.certified)
+    assert np.array_equal(rec.guard_m, leaves.guard_m)
+    assert np.array_equal(np.isnan(rec.clearance_m), np.isnan(leaves.clearance_m))
+    both = np.isfinite(leaves.clearance_m)
+    assert np.array_equal(np.isinf(rec.clearance_m), np.isinf(leaves.clearance_m))
+    scale = np.maximum(1.0, np.abs(leaves.clearance_m[both]))
+    assert np.all(np.abs(rec.clearance_m[both] - leaves.clearance_m[both]) <= ulps * np.finfo(np.float64).eps * scale)
+    return frontier
+
+
+@pytest.fixture(scope="module")
+def random_set(robot):
+    rng = np.random.default_rng(11)
+    trajs = [random_trajectory(rng, robot, k) for k in range(12)]
+    scenes = [random_scene(rng, k, max_boxes=6) for k in range(12)]
+    return trajs, scenes
+
+
+def test_tree_matches_host_frontier_on_random_set(robot, capsules, random_set):
+    trajs, scenes = random_set
+    batch, names = _batch(robot, capsules, trajs, scenes)
+    assert supports(batch)
+    tree = run_tree(batch, len(trajs), MAX_DEPTH)
+    frontier = _compare(batch, names, len(trajs), tree, ulps=8)
+    assert tree.calls == 1 and frontier[:, MAX_DEPTH].sum() > 0  # some trajectory reached the deepest level
+    assert 0 < (tree.record.stage > 0).mean() < 1
+
+
+def test_tree_continues_when_buffers_fill(robot, capsules, random_set):
+    trajs, scenes = random_set
+    batch, names = _batch(robot, capsules, trajs, scenes)
+    tree = run_tree(batch, len(trajs), MAX_DEPTH, **SMALL)
+    assert tree.calls > 5
+    _compare(batch, names, len(trajs), tree, ulps=8)
+
+
+def test_tree_without_broad_phase_and_empty_scenes(robot, capsules, random_set, monkeypatch):
+    from larc_jax.engine.batch import Batch
+
+    monkeypatch.setattr(Batch, "use_broad_phase", property(lambda self: False))  # both schedulers: every pair
+    trajs, _ = random_set
+    lone = Scene(lo=np.array([[0.2, -0.1, 0.1]]), hi=np.array([[0.3, 0.1, 0.3]]), box_names=("lone",), name="lone")
+    empty = Scene(lo=np.zeros((0, 3)), hi=np.zeros((0, 3)), box_names=(), name="empty")
+    scenes = [lone if k % 2 else empty for k in range(len(trajs))]
+    batch, names = _batch(robot, capsules, trajs, scenes)
+    assert not batch.use_broad_phase
+    tree = run_tree(batch, len(trajs), MAX_DEPTH, **SMALL)
+    _compare(batch, names, len(trajs), tree, ulps=8)
+    in_empty = np.isin(tree.traj, np.arange(0, len(trajs), 2))
+    assert np.all(tree.depth[in_empty] == 0) and np.all(np.isposinf(tree.record.clearance_m[in_empty]))
+
+
+def test_tree_float32_geometry(robot, capsules, random_set):
+    trajs, scenes = random_set
+    batch, names = _batch(robot, capsules, trajs[:5], scenes[:5], dtype=np.float32)
+    tree = run_tree(batch, 5, MAX_DEPTH, **SMALL)
+    _compare(batch, names, 5, tree, ulps=2**30)  # float32 geometry: agreement to its own precision
+
+
+def test_tree_refuses_what_it_does_not_run(robot, capsules, random_set):
+    trajs, scenes = random_set
+    batch, _ = _batch(robot, capsules, trajs[:2], scenes[:2], enclosure="hull")
+    batch = dataclasses.replace(batch, hulls=batch.hulls if batch.hulls is not None else object())
+    assert not supports(batch)
+    with pytest.raises(ValueError, match="capsule test alone"):
+        run_tree(batch, 2, MAX_DEPTH)
+    batch, _ = _batch(robot, capsules, trajs[:2], scenes[:2])
+    with pytest.raises(ValueError, match="narrow"):
+        run_tree(batch, 2, MAX_DEPTH, wide=4, narrow=8)
+
+
+def test_dyadic_and_rebased_ends_bit_identical():
+    import jax
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    t_start = np.concatenate([rng.uniform(-1e6, 1e6, n // 2), rng.choice([0.0, 1e-300, 1e9, 3.0], n // 2)])
+    t_end = t_start + np.concatenate([rng.uniform(1e-9, 100.0, n // 2), rng.choice([1e-6, 0.1, 7.0, 1e5], n // 2)])
+    depth = rng.integers(0, 40, n)
+    index = (rng.random(n) * np.ldexp(1.0, depth)).astype(np.int64)
+    index[:8] = 0
+    index[8:16] = (1 << depth[8:16]) - 1  # the last interval: its end is t_end verbatim
+    offset = np.where(rng.random(n) < 0.5, t_start, rng.uniform(-1e6, 1e6, n))
+    with jax.enable_x64(True):
+        a, b = (np.asarray(x) for x in jax.jit(dyadic_ends_jnp)(t_start, t_end, depth.astype(np.int32), index))
+        ra, rb = (np.asarray(x) for x in jax.jit(rebase_ends_jnp)(a, b, offset))
+    a_np, b_np = dyadic_ends(t_start, t_end, depth, index)
+    assert np.array_equal(a, a_np) and np.array_equal(b, b_np)
+    assert np.array_equal(b[8:16], t_end[8:16]) and np.array_equal(a[:8], t_start[:8])
+    ra_np, rb_np = rebase_ends(a_np, b_np, offset)
+    assert np.array_equal(ra, ra_np) and np.array_equal(rb, rb_np)
