@@ -1,6 +1,6 @@
 """Benchmark: the device tree (:mod:`larc_jax.engine.tree`) against the host frontier (issue 20).
 
-    python -m experiments.bench_tree [--json results/bench/tree_cpu.json] [--every 10] [--repeats 5]
+    python -m experiments.bench_tree [--json results/bench/tree_cpu.json] [--every 10] [--repeats 5] [--cpus N]
 
 The committed Stage B set, the capsule test (the device tree runs nothing else yet), float64, one
 prepared batch per run, so that only the scheduler differs (``certify``'s own work around it, the
@@ -17,7 +17,11 @@ same for both, is left out):
   depth, index, ends) and decisions against the host frontier's, and the largest difference of a
   leaf's clearance (XLA compiles the kernel inside the loop with its own fusions).
 
-Writes the JSON and ``results/bench/tree_cpu.md`` (the table the README quotes).
+``--cpus N`` runs the process on its first N CPUs (set before JAX starts, so XLA's thread pool
+has N threads): the committed runs are on both cores of this machine (``tree_cpu``) and on one
+(``tree_cpu1``), which tells how much of a scheduler's speed is XLA's parallelism across cores.
+
+Writes the JSON and the Markdown table beside it (the tables the README quotes).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import argparse
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -89,7 +94,7 @@ def table(out: dict) -> str:
     names = list(w)
     rows = [
         f"Stage B: {out['trajectories']} trajectories, capsule test, float64, JAX device `{out['device']}`, "
-        f"{out['cpu_count']} CPU cores, one run:",
+        f"{out['cpu_count']} CPU {'core' if out['cpu_count'] == 1 else 'cores'}, one run:",
         "",
         "| | " + " | ".join(names) + " |",
         "|---|" + "---|" * len(names),
@@ -111,7 +116,7 @@ def _machine() -> dict:
     import jax
 
     return dict(device=str(jax.devices()[0]), machine=platform.processor() or platform.machine(),
-                cpu_count=os.cpu_count(), load_average_start=os.getloadavg())
+                cpu_count=len(os.sched_getaffinity(0)), load_average_start=os.getloadavg())
 
 
 def main(argv=None) -> int:
@@ -119,7 +124,15 @@ def main(argv=None) -> int:
     parser.add_argument("--json", help="write the figures as JSON (and the table beside it)")
     parser.add_argument("--repeats", type=int, default=5, help="warm calls per measurement")
     parser.add_argument("--every", type=int, default=10, help="one trajectory per call: every EVERY-th trajectory")
+    parser.add_argument("--cpus", type=int, help="run on the first CPUS CPUs of this process's affinity")
     args = parser.parse_args(argv)
+    if args.cpus is not None:
+        allowed = sorted(os.sched_getaffinity(0))
+        if not 1 <= args.cpus <= len(allowed):
+            parser.error(f"--cpus {args.cpus}: this process may use 1 to {len(allowed)} CPUs")
+        if "jax" in sys.modules and args.cpus < len(allowed):
+            parser.error("--cpus: JAX is already loaded in this process (its thread pool is sized)")
+        os.sched_setaffinity(0, allowed[: args.cpus])
     from experiments.bench import stageB_dataset
     from larc_jax.enclosure.robot_file import load_robot_file
     from larc_jax.io import atomic_write_json, atomic_write_text

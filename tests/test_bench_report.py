@@ -88,13 +88,24 @@ def test_render_needs_its_figures(argv, capsys):
     assert e.value.code == 2 and "--render needs --json FILE" in capsys.readouterr().err
 
 
-def test_device_tree_table_is_rendered_and_agrees():
-    """experiments.bench_tree's committed table renders from its figures, and the device tree made
-    the host frontier's evaluations, leaves and decisions in that run."""
+@pytest.mark.parametrize("name", ["tree_cpu", "tree_cpu1"])
+def test_device_tree_table_is_rendered_and_agrees(name):
+    """experiments.bench_tree's committed tables render from their figures, and the device tree made
+    the host frontier's evaluations, leaves and decisions in those runs."""
     from experiments import bench_tree
 
-    figures = _figures("tree_cpu")
-    assert bench_tree.table(figures) == (RESULTS / "tree_cpu.md").read_text()
+    figures = _figures(name)
+    assert figures["cpu_count"] == (1 if name.endswith("1") else 2)
+    assert bench_tree.table(figures) == (RESULTS / f"{name}.md").read_text()
     agreement = figures["agreement"]
     assert agreement["evaluations_equal"] and agreement["leaves_equal"] and agreement["decisions_equal"]
     assert agreement["guards_equal"] and agreement["clearance_max_abs_diff_m"] < 1e-12
+
+
+@pytest.mark.parametrize("cpus", ["0", "999"])
+def test_bench_tree_refuses_a_cpu_count_it_cannot_have(cpus):
+    from experiments import bench_tree
+
+    with pytest.raises(SystemExit) as exc:
+        bench_tree.main(["--cpus", cpus])
+    assert exc.value.code == 2

@@ -172,11 +172,13 @@ def test_benchmark_table_is_the_generated_one(name):
     assert README[i:j].strip() == (ROOT / "results" / "bench" / f"{name}.md").read_text().strip()
 
 
-def test_tree_table_is_the_generated_one():
-    """The README's device-tree table is results/bench/tree_cpu.md (experiments.bench_tree)."""
-    begin = "<!-- tree table: results/bench/tree_cpu.md, written by experiments.bench_tree -->"
-    i, j = README.index(begin) + len(begin), README.index("<!-- end of tree table -->")
-    assert README[i:j].strip() == (ROOT / "results" / "bench" / "tree_cpu.md").read_text().strip()
+@pytest.mark.parametrize("name", ["tree_cpu", "tree_cpu1"])
+def test_tree_table_is_the_generated_one(name):
+    """The README's device-tree tables are results/bench/NAME.md (experiments.bench_tree)."""
+    begin = f"<!-- tree table: results/bench/{name}.md, written by experiments.bench_tree -->"
+    i = README.index(begin) + len(begin)
+    j = README.index("<!-- end of tree table -->", i)
+    assert README[i:j].strip() == (ROOT / "results" / "bench" / f"{name}.md").read_text().strip()
 
 
 def test_obstacles_table_is_the_generated_one():

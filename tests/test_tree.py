@@ -12,6 +12,7 @@ from larc_jax.engine.batch import prepare
 from larc_jax.engine.certify import _Names, _larc_batched, run_spec  # noqa: PLC2701 - the host frontier is the reference
 from larc_jax.engine.tree import dyadic_ends_jnp, rebase_ends_jnp, run_tree, supports
 from larc_jax.leaf.interval import dyadic_ends, rebase_ends, trajectory_roundings
+from larc_jax.leaf.self_collision import curve_ranges, load_separation, self_pairs
 from larc_jax.model.scene import Scene
 
 from .test_certify import random_scene, random_trajectory
@@ -21,11 +22,18 @@ SMALL = dict(wide=32, narrow=4, leaf_capacity=64)
 """Buffers small enough that a run needs many calls (the continuation path)."""
 
 
-def _batch(robot, capsules, trajs, scenes, dtype=np.float64, enclosure="capsules"):
-    spec = run_spec(enclosure=enclosure)
+def _batch(robot, capsules, trajs, scenes, dtype=np.float64, enclosure="capsules", self_collision=False):
+    """The trajectories prepared as ``certify`` prepares them (with the self test's pairs, and the
+    pairs proven apart for each trajectory, when ``self_collision``)."""
+    spec = run_spec(enclosure=enclosure, self_collision=self_collision)
     caps = capsules.with_padding(spec.padding_m)
     bounds = trajectory_roundings(trajs, robot, caps, dtype, None)
-    return prepare(trajs, scenes, robot, caps, spec.margin_m, dtype, bounds, None), _Names(scenes)
+    pairs = skips = None
+    if self_collision:
+        pairs = self_pairs(robot, caps, spec.self_margin_m, spec.self_skip, proven=load_separation(robot))
+        skips = [pairs.skip_mask(*curve_ranges(t, None)) for t in trajs]
+    batch = prepare(trajs, scenes, robot, caps, spec.margin_m, dtype, bounds, None, self_pairs=pairs, self_skip=skips)
+    return batch, _Names(scenes)
 
 
 def _compare(batch, names, n, tree, ulps: float):
@@ -37,8 +45,10 @@ def _compare(batch, names, n, tree, ulps: float):
     for field in ("traj", "depth", "index", "t0", "t1"):
         assert np.array_equal(getattr(tree, field), getattr(leaves, field)), field
     rec = tree.record
-    assert np.array_equal(rec.stage > 0, leaves.certified)
+    assert np.array_equal(rec.stage > 0, leaves.certified) and np.array_equal(rec.stage, leaves.stage)
     assert np.array_equal(rec.guard_m, leaves.guard_m)
+    assert np.array_equal(rec.other, leaves.other_capsule)
+    assert np.array_equal(np.where(leaves.capsule >= 0, rec.capsule, -1), leaves.capsule)  # -1: nothing to hit
     assert np.array_equal(np.isnan(rec.clearance_m), np.isnan(leaves.clearance_m))
     both = np.isfinite(leaves.clearance_m)
     assert np.array_equal(np.isinf(rec.clearance_m), np.isinf(leaves.clearance_m))
@@ -89,6 +99,17 @@ def test_tree_without_broad_phase_and_empty_scenes(robot, capsules, random_set, 
     assert np.all(tree.depth[in_empty] == 0) and np.all(np.isposinf(tree.record.clearance_m[in_empty]))
 
 
+def test_tree_with_self_collision(robot, capsules, random_set):
+    """The self test composed on the device as on the host: some leaves are decided by a capsule
+    pair (``other >= 0``), and every decision is the host frontier's."""
+    trajs, scenes = random_set
+    batch, names = _batch(robot, capsules, trajs, scenes, self_collision=True)
+    assert batch.self_pairs is not None and supports(batch)
+    tree = run_tree(batch, len(trajs), MAX_DEPTH, **SMALL)
+    _compare(batch, names, len(trajs), tree, ulps=8)
+    assert (tree.record.other >= 0).any()
+
+
 def test_tree_float32_geometry(robot, capsules, random_set):
     trajs, scenes = random_set
     batch, names = _batch(robot, capsules, trajs[:5], scenes[:5], dtype=np.float32)
@@ -101,7 +122,7 @@ def test_tree_refuses_what_it_does_not_run(robot, capsules, random_set):
     batch, _ = _batch(robot, capsules, trajs[:2], scenes[:2], enclosure="hull")
     batch = dataclasses.replace(batch, hulls=batch.hulls if batch.hulls is not None else object())
     assert not supports(batch)
-    with pytest.raises(ValueError, match="capsule test alone"):
+    with pytest.raises(ValueError, match="without the hull or swept stage"):
         run_tree(batch, 2, MAX_DEPTH)
     batch, _ = _batch(robot, capsules, trajs[:2], scenes[:2])
     with pytest.raises(ValueError, match="narrow"):

@@ -1,31 +1,37 @@
 """The adaptive tree on the device: LARC's bisection as one jitted program per batch.
 
-The host-driven frontier (:func:`larc_jax.engine.certify._larc_batched`) makes a kernel call per
-depth and moves every result to the host between calls. Here the whole tree of the capsule test
-runs inside one ``jax.lax.while_loop``:
+The host-driven frontier (``larc`` in :mod:`larc_jax.engine.certify`) makes a kernel call per
+depth and moves every result to the host between calls. Here the whole tree (the capsule test,
+and the self test where the run checks self-collision) runs inside one ``jax.lax.while_loop``:
 
 * a work stack of ``(trajectory, depth, index)`` intervals, ``capacity`` long, seeded with the
-  roots; each step pops the top ``chunk`` intervals (fewer when the stack holds fewer), evaluates
-  them (the same per-interval kernel as every scheduler, :func:`~larc_jax.engine.kernels.batched_intervals`,
+  roots; each step pops the top intervals (at most a step's width), evaluates them (the same
+  per-interval kernels as every scheduler, :func:`~larc_jax.engine.kernels.batched_intervals` and
+  :func:`~larc_jax.engine.kernels.self_intervals`, composed by :func:`~larc_jax.leaf.record.compose`,
   with the same dyadic ends, :func:`~larc_jax.leaf.interval.dyadic_ends`, rebased outwards, budget T1),
   writes the finished ones (passed, or at ``max_depth``) into preallocated leaf buffers at offsets
   given by a prefix sum, and pushes both children of every open one by a second prefix sum and
   scatter (stream compaction);
 * two step sizes, both compiled into the program: a wide step while the stack holds at least half
   of it, a narrow one below (one trajectory certified alone starts from one interval; a wide step
-  there would evaluate padding);
+  there would evaluate padding); only the evaluation is under the branch, never the buffers;
 * the loop stops when the stack is empty, or when the next step could overflow the stack or the leaf
   buffers; the host then takes the leaves out and calls again with what is left (:func:`run_tree`).
   A stopped call never changes a result: each interval's test depends on that interval alone.
 
 Why the order does not matter: an interval is evaluated exactly when its parent was evaluated and
 failed (or it is a root), whatever order the stack takes them in, so the set of evaluated intervals,
-the leaves and their records equal those of the level-by-level frontier; :func:`run_tree` returns
-the leaves sorted as that frontier emits them (by depth, trajectory, index), and the per-depth
-evaluation counts.
+the leaves and their decisions equal those of the level-by-level frontier; :func:`run_tree`
+returns the leaves sorted as the certifiers' leaf tables are (by trajectory, then time), and the
+per-depth evaluation counts. A record's clearance may differ from the host frontier's in its last
+bits: XLA compiles the kernel inside the loop with its own fusions (fused multiply-adds where the
+host's kernel has none, or the reverse); the interval ends, which decide which interval a leaf is,
+are rounded as NumPy rounds them (:func:`dyadic_ends_jnp`).
 
-Scope: the capsule test against whole scenes (no hull, swept or self stage, no culling, one device);
-:func:`supports` says when a batch qualifies, and the certifier runs the host frontier otherwise.
+Scope: the capsule test, with the self test or without, against whole scenes (no hull or swept
+stage, no culling), on one device; :func:`supports` says when a batch qualifies. ``certify`` does
+not use it yet (README, "The depth loop on the device": on a CPU it is slower than the host
+frontier on large batches).
 """
 
 from __future__ import annotations
@@ -38,9 +44,9 @@ import numpy as np
 from ..compilation import tracked_call
 from ..lazy_jax import jax, jnp
 from ..leaf.clearance import BROAD_PHASE_K
-from ..leaf.record import LeafRecord, Stage, box_record
+from ..leaf.record import LeafRecord, Stage, box_record, compose, self_record
 from .batch import size_class
-from .kernels import batched_intervals
+from .kernels import batched_intervals, self_intervals
 
 __all__ = ["supports", "run_tree", "tree_program", "TreeLeaves", "dyadic_ends_jnp", "rebase_ends_jnp", "WIDE_STEP",
            "NARROW_STEP", "STACK_SLACK", "LEAF_CAPACITY"]
@@ -54,13 +60,13 @@ STACK_SLACK = 2
 grows it by at most its width, and the loop stops before a step could overflow it (depth first,
 the stack holds about one step's width per level)."""
 LEAF_CAPACITY = 1 << 16
-"""Leaves one call may write before it returns them to the host (9 columns, 4.7 MB)."""
+"""Leaves one call may write before it returns them to the host (11 columns, 5.5 MB)."""
 
 
 def supports(batch) -> bool:
-    """Whether the device tree runs ``batch``: the capsule test alone on whole scenes, one device."""
-    return (batch.hulls is None and batch.swept is None and batch.self_pairs is None and batch.cull is None
-            and len(batch.devices) <= 1)
+    """Whether the device tree runs ``batch``: the capsule test (and the self test, if the batch has
+    one) on whole scenes, one device."""
+    return batch.hulls is None and batch.swept is None and batch.cull is None and len(batch.devices) <= 1
 
 
 def dyadic_ends_jnp(t_start, t_end, depth, index):
@@ -94,7 +100,7 @@ def rebase_ends_jnp(a, b, offset):
 @dataclasses.dataclass(frozen=True)
 class TreeLeaves:
     """What :func:`run_tree` found (NumPy): the leaves, sorted as the certifiers' leaf tables are
-    (by trajectory, then time), each with its capsule-stage record, and the per-trajectory,
+    (by trajectory, then time), each with its record, and the per-trajectory,
     per-depth evaluation counts ``frontier`` (``(n_traj, max_depth + 1)``)."""
 
     traj: np.ndarray
@@ -104,36 +110,27 @@ class TreeLeaves:
     """Leaf start in the trajectory's own time axis, s (:func:`~larc_jax.leaf.interval.dyadic_ends`)."""
     t1: np.ndarray
     record: LeafRecord
-    """The capsule stage's record (:func:`~larc_jax.leaf.record.box_record`): ``stage > 0`` iff certified."""
+    """The leaf test's record (the capsule stage's, composed with the self test's:
+    :func:`~larc_jax.leaf.record.compose`): ``stage > 0`` iff certified."""
     frontier: np.ndarray
     calls: int
     """Device programs run (more than one when a stack or leaf buffer filled)."""
 
 
-_LEAF_DTYPES = (np.int32, np.int32, np.int64, np.float64, np.float64, np.float64, np.float64, np.int32, np.int32)
-"""Leaf buffer columns: trajectory, depth, index, t0, t1, g, guard, capsule, box."""
+_LEAF_DTYPES = (np.int32, np.int32, np.int64, np.float64, np.float64, np.float64, np.float64, np.int32, np.int32,
+                np.int32, np.int8)
+"""Leaf buffer columns: trajectory, depth, index, t0, t1, then the record's (:class:`LeafRecord`)."""
 
 
-def _step(width: int, args, max_depth: int, broad: bool, state):
-    """One step: pop up to ``width`` intervals off the stack, evaluate them, write the finished ones
-    into the leaf buffers and push both children of the open ones."""
-    robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin = args
-    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier = state
-    capacity = s_traj.shape[0]
-    n = jnp.minimum(top, width)
-    start = top - n
-    lane = jnp.arange(width, dtype=top.dtype)
-    valid = lane < n
-    rows = jnp.where(valid, start + lane, 0)
-    # A padding lane evaluates trajectory 0's root (a real interval); nothing it computes is kept.
-    tr = jnp.where(valid, s_traj[rows], 0)
-    dp = jnp.where(valid, s_depth[rows], 0)
-    ix = jnp.where(valid, s_index[rows], 0)
+def _evaluate(args, broad: bool, tr, dp, ix, valid):
+    """The leaf test of the intervals ``(tr, dp, ix)`` (lanes; ``valid`` those in use): their ends and
+    record, as :meth:`Batch._stages <larc_jax.engine.batch.Batch>` takes them."""
+    robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check = args
     t0, t1 = dyadic_ends_jnp(t_start[tr], t_end[tr], dp, ix)
     a, b = rebase_ends_jnp(t0, t1, bounds.offset_s[tr])
-    sel = (scene_of[tr],)
-    kernel = functools.partial(batched_intervals, robot, capsules, splines, obstacles, bounds, tr, sel, a, b, margin)
-    if broad:  # as Batch._stages: the broad phase, then every pair where it could not prove its pick
+    kernel = functools.partial(batched_intervals, robot, capsules, splines, obstacles, bounds, tr, (scene_of[tr],), a,
+                               b, margin)
+    if broad:  # the broad phase, then every pair where it could not prove its pick
         g, guard, cap, box, exact = kernel(BROAD_PHASE_K)
         redo = ~exact.astype(bool) & valid
 
@@ -143,13 +140,44 @@ def _step(width: int, args, max_depth: int, broad: bool, state):
         g, guard, cap, box = jax.lax.cond(redo.any(), all_pairs, lambda picked: picked, (g, guard, cap, box))
     else:
         g, guard, cap, box, _ = kernel(None)
-    passed = g > guard  # NaN never passes (larc_jax.leaf.record)
+    record = box_record(g, guard, cap.astype(jnp.int64), box.astype(jnp.int64), Stage.CAPSULE, xp=jnp)
+    if self_check is not None:
+        gs, gds, c1, c2 = self_intervals(robot, capsules, splines, bounds, tr, a, b, self_check)
+        record = compose(record, self_record(gs, gds, c1.astype(jnp.int64), c2.astype(jnp.int64), xp=jnp), xp=jnp)
+    return t0, t1, record
+
+
+def _step(args, max_depth: int, broad: bool, wide: int, narrow: int, state):
+    """One step: pop up to ``wide`` intervals off the stack (``narrow`` while it holds fewer than
+    ``wide // 2``), evaluate them, write the finished ones into the leaf buffers and push both
+    children of the open ones. Only the evaluation is under the branch: its operands are a step's
+    lanes, not the buffers (a branch over the whole state would copy them each step)."""
+    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier = state
+    capacity = s_traj.shape[0]
+    use_wide = top >= wide // 2
+    n = jnp.minimum(top, jnp.where(use_wide, wide, narrow))
+    start = top - n
+    lane = jnp.arange(wide, dtype=top.dtype)
+    valid = lane < n
+    rows = jnp.where(valid, start + lane, 0)
+    # A padding lane evaluates trajectory 0's root (a real interval); nothing it computes is kept.
+    tr = jnp.where(valid, s_traj[rows], 0)
+    dp = jnp.where(valid, s_depth[rows], 0)
+    ix = jnp.where(valid, s_index[rows], 0)
+
+    def narrow_step(lanes):  # the first `narrow` lanes, the rest padded (never valid in a narrow step)
+        out = _evaluate(args, broad, *(x[:narrow] for x in lanes))
+        return jax.tree.map(lambda x: jnp.concatenate([x, jnp.zeros((wide - narrow,), x.dtype)]), out)
+
+    t0, t1, record = jax.lax.cond(use_wide, lambda lanes: _evaluate(args, broad, *lanes), narrow_step,
+                                  (tr, dp, ix, valid))
+    passed = record.stage > 0  # g > guard for every stage that ran; NaN never passes (larc_jax.leaf.record)
     final = valid & (passed | (dp == max_depth))
     open_ = valid & ~final
     # Stream compaction by prefix sums; a write to an index past the end is dropped.
     at = jnp.where(final, n_leaves + jnp.cumsum(final) - 1, leaves[0].shape[0])
     leaves = tuple(buf.at[at].set(x.astype(buf.dtype), mode="drop")
-                   for buf, x in zip(leaves, (tr, dp, ix, t0, t1, g, guard, cap, box)))
+                   for buf, x in zip(leaves, (tr, dp, ix, t0, t1, *record)))
     first = start + 2 * (jnp.cumsum(open_) - 1)
     left, right = jnp.where(open_, first, capacity), jnp.where(open_, first + 1, capacity)
     s_traj = s_traj.at[left].set(tr, mode="drop").at[right].set(tr, mode="drop")
@@ -161,13 +189,14 @@ def _step(width: int, args, max_depth: int, broad: bool, state):
 
 
 @functools.partial(jax.jit, static_argnames=("max_depth", "broad", "wide", "narrow", "leaf_capacity"))
-def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, stack, top, frontier,
-                 *, max_depth: int, broad: bool, wide: int, narrow: int, leaf_capacity: int):
+def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, stack, top,
+                 frontier, *, max_depth: int, broad: bool, wide: int, narrow: int, leaf_capacity: int):
     """The tree from ``stack`` (trajectory, depth, index arrays, the first ``top`` in use) until the
     stack is empty or the next step could overflow it or the leaf buffers. Returns ``(stack, top,
     leaves, n_leaves, frontier)``: what is left, the leaf columns (:data:`_LEAF_DTYPES`; the first
-    ``n_leaves`` in use) and ``frontier`` with this call's evaluations added."""
-    args = (robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin)
+    ``n_leaves`` in use) and ``frontier`` with this call's evaluations added. ``self_check``: as
+    :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self test)."""
+    args = (robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check)
     capacity = stack[0].shape[0]
     leaves = tuple(jnp.zeros(leaf_capacity, d) for d in _LEAF_DTYPES)
 
@@ -175,12 +204,9 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
         top, n_leaves = state[3], state[5]
         return (top > 0) & (top + wide <= capacity) & (n_leaves + wide <= leaf_capacity)
 
-    def body(state):  # a wide step while the stack holds half of one, else a narrow one
-        return jax.lax.cond(state[3] >= wide // 2, functools.partial(_step, wide, args, max_depth, broad),
-                            functools.partial(_step, narrow, args, max_depth, broad), state)
-
     s_traj, s_depth, s_index, top, leaves, n_leaves, frontier = jax.lax.while_loop(
-        room, body, (*stack, top, leaves, jnp.int32(0), frontier))
+        room, functools.partial(_step, args, max_depth, broad, wide, narrow),
+        (*stack, top, leaves, jnp.int32(0), frontier))
     return (s_traj, s_depth, s_index), top, leaves, n_leaves, frontier
 
 
@@ -198,7 +224,8 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     trajectory's root down to ``max_depth``: the device program, called again with what is left
     while a call stops short. ``on_compile``: as :meth:`Batch.evaluate <larc_jax.engine.batch.Batch.evaluate>`."""
     if not supports(batch):
-        raise ValueError("run_tree: the device tree runs the capsule test alone on whole scenes, on one device")
+        raise ValueError("run_tree: the device tree runs the capsule test (and the self test) on whole scenes, on one "
+                         "device, without the hull or swept stage")
     if not (1 <= narrow <= wide <= leaf_capacity) or n_traj < 1 or max_depth < 0:
         raise ValueError(f"run_tree: need 1 <= narrow ({narrow}) <= wide ({wide}) <= leaf_capacity "
                          f"({leaf_capacity}), n_traj >= 1, max_depth >= 0")
@@ -208,8 +235,11 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     pad = lambda x: np.concatenate([x, np.repeat(x[:1], rows - len(x))])  # noqa: E731
     frontier = np.zeros((rows, max_depth + 1), np.int64)
     program = _program(max_depth, bool(batch.use_broad_phase), wide, narrow, leaf_capacity)
+    sp = batch.self_pairs
+    self_check = None if sp is None else (sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64),
+                                          batch.self_skip)
     args = (batch.robot, batch.capsules, batch.splines, batch.obstacles, batch.bounds, pad(batch.scene_of),
-            pad(batch.t_start), pad(batch.t_end), batch.margin)
+            pad(batch.t_start), pad(batch.t_end), batch.margin, self_check)
     found, calls = [], 0
     while len(pending[0]):
         take = min(len(pending[0]), capacity - wide)  # the top of the pending stack, deepest first
@@ -221,9 +251,9 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
         calls += 1
         found.append([x[: int(n_leaves)] for x in leaves])
         pending = [np.concatenate([p, s[: int(top)]]) for p, s in zip(pending, (s_traj, s_depth, s_index))]
-    traj, depth, index, t0, t1, g, guard, cap, box = (np.concatenate(c) for c in zip(*found))
+    traj, depth, index, t0, t1, *columns = (np.concatenate(c) for c in zip(*found))
     order = np.lexsort((t0, traj))
-    record = box_record(g[order], guard[order], cap[order].astype(np.int64), box[order].astype(np.int64),
-                        Stage.CAPSULE)
+    g, guard, cap, box, other, stage = (x[order] for x in columns)
+    record = LeafRecord(g, guard, cap.astype(np.int64), box.astype(np.int64), other.astype(np.int64), stage)
     return TreeLeaves(traj[order].astype(np.int64), depth[order].astype(np.int64), index[order], t0[order], t1[order],
                       record, frontier[:n_traj].copy(), calls)
