@@ -37,7 +37,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-TABLE = ROOT / "results" / "bench" / "tree_cpu.md"
 MAX_DEPTH = 9
 
 
@@ -79,12 +78,13 @@ def agreement(host, tree) -> dict:
     same_nodes = all(np.array_equal(getattr(tree, f), getattr(leaves, f)) for f in ("traj", "depth", "index", "t0", "t1"))
     g_host, g_tree = leaves.clearance_m, tree.record.clearance_m
     finite = np.isfinite(g_host) & np.isfinite(g_tree)
+    same = (g_host == g_tree) | (np.isnan(g_host) & np.isnan(g_tree))  # +-inf equal as values; NaN with NaN
     return {
         "evaluations": int(frontier.sum()), "evaluations_equal": bool(np.array_equal(frontier, tree.frontier)),
         "leaves": len(leaves), "leaves_equal": bool(same_nodes and len(leaves) == len(tree.traj)),
         "decisions_equal": bool(same_nodes and np.array_equal(leaves.certified, tree.record.stage > 0)),
         "guards_equal": bool(same_nodes and np.array_equal(leaves.guard_m, tree.record.guard_m)),
-        "clearance_bit_identical": int(np.sum(g_host[finite] == g_tree[finite]) + np.sum(~finite)),
+        "clearance_bit_identical": int(np.sum(same)),
         "clearance_max_abs_diff_m": float(np.max(np.abs(g_host[finite] - g_tree[finite]), initial=0.0)),
     }
 

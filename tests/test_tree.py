@@ -22,10 +22,10 @@ SMALL = dict(wide=32, narrow=4, leaf_capacity=64)
 """Buffers small enough that a run needs many calls (the continuation path)."""
 
 
-def _batch(robot, capsules, trajs, scenes, dtype=np.float64, enclosure="capsules", self_collision=False):
+def _batch(robot, capsules, trajs, scenes, dtype=np.float64, self_collision=False):
     """The trajectories prepared as ``certify`` prepares them (with the self test's pairs, and the
     pairs proven apart for each trajectory, when ``self_collision``)."""
-    spec = run_spec(enclosure=enclosure, self_collision=self_collision)
+    spec = run_spec(enclosure="capsules", self_collision=self_collision)
     caps = capsules.with_padding(spec.padding_m)
     bounds = trajectory_roundings(trajs, robot, caps, dtype, None)
     pairs = skips = None
@@ -119,8 +119,8 @@ def test_tree_float32_geometry(robot, capsules, random_set):
 
 def test_tree_refuses_what_it_does_not_run(robot, capsules, random_set):
     trajs, scenes = random_set
-    batch, _ = _batch(robot, capsules, trajs[:2], scenes[:2], enclosure="hull")
-    batch = dataclasses.replace(batch, hulls=batch.hulls if batch.hulls is not None else object())
+    batch, _ = _batch(robot, capsules, trajs[:2], scenes[:2])
+    batch = dataclasses.replace(batch, hulls=object())  # a cascade batch: the hull stage is not on the device
     assert not supports(batch)
     with pytest.raises(ValueError, match="without the hull or swept stage"):
         run_tree(batch, 2, MAX_DEPTH)
