@@ -36,11 +36,11 @@ def _batch(robot, capsules, trajs, scenes, dtype=np.float64, self_collision=Fals
     return batch, _Names(scenes)
 
 
-def _compare(batch, names, n, tree, ulps: float):
+def _compare(batch, names, n, tree, ulps: float, max_depth: int = MAX_DEPTH):
     """The tree's leaves are the host frontier's, interval for interval, with the same decisions;
     the clearance agrees to ``ulps`` units in the last place of the pair's shell (XLA compiles
     the kernel inside the loop with its own fusions: the same bound, rounded within its guard)."""
-    frontier, leaves = _larc_batched(batch, n, names, MAX_DEPTH, None)
+    frontier, leaves = _larc_batched(batch, n, names, max_depth, None)
     assert np.array_equal(tree.frontier, frontier)
     for field in ("traj", "depth", "index", "t0", "t1"):
         assert np.array_equal(getattr(tree, field), getattr(leaves, field)), field
@@ -108,6 +108,19 @@ def test_tree_with_self_collision(robot, capsules, random_set):
     tree = run_tree(batch, len(trajs), MAX_DEPTH, **SMALL)
     _compare(batch, names, len(trajs), tree, ulps=8)
     assert (tree.record.other >= 0).any()
+
+
+def test_tree_one_program_for_every_depth(robot, capsules, random_set):
+    """The depth is traced: depths 3, 9 and 12 run one compiled program (a compile is reported
+    once), each giving the host frontier's leaves at that depth."""
+    trajs, scenes = random_set
+    batch, names = _batch(robot, capsules, trajs[:6], scenes[:6])
+    compiles = []
+    for depth in (3, 9, 12):
+        tree = run_tree(batch, 6, depth, compiles.append, **SMALL)
+        assert tree.frontier.shape == (6, depth + 1)
+        _compare(batch, names, 6, tree, ulps=8, max_depth=depth)
+    assert compiles.count(True) <= 1  # none when an earlier test compiled this shape already
 
 
 def test_tree_float32_geometry(robot, capsules, random_set):

@@ -15,6 +15,8 @@ and the self test where the run checks self-collision) runs inside one ``jax.lax
 * two step sizes, both compiled into the program: a wide step while the stack holds at least half
   of it, a narrow one below (one trajectory certified alone starts from one interval; a wide step
   there would evaluate padding); only the evaluation is under the branch, never the buffers;
+* the depth is traced and the buffers are sized by the batch's trajectory count (its power-of-two
+  class), never by its depth: one compiled program per batch class, whatever ``max_depth``;
 * the loop stops when the stack is empty, or when the next step could overflow the stack or the leaf
   buffers; the host then takes the leaves out and calls again with what is left (:func:`run_tree`).
   A stopped call never changes a result: each interval's test depends on that interval alone.
@@ -42,6 +44,7 @@ import functools
 import numpy as np
 
 from ..compilation import tracked_call
+from ..defaults import DEFAULT_MAX_DEPTH, MAX_DEPTH_LIMIT
 from ..lazy_jax import jax, jnp
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.record import LeafRecord, Stage, box_record, compose, self_record
@@ -54,13 +57,22 @@ __all__ = ["supports", "run_tree", "tree_program", "TreeLeaves", "dyadic_ends_jn
 WIDE_STEP = 256
 """Intervals a wide step evaluates (the stack holds at least half of it)."""
 NARROW_STEP = 16
-"""Intervals a narrow step evaluates (the stack holds fewer than ``WIDE_STEP // 2``)."""
+"""Intervals a narrow step evaluates (the stack holds fewer than ``WIDE_STEP // 2``). A third,
+middle width (or four widths, 8 to 256, each step taking the smallest that holds the stack) was
+slower one trajectory per call on Stage B and about doubled the compile time (measured while
+developing, README "The depth loop on the device"): a wide step mostly evaluates padding on a
+short stack, and every width is another compiled copy of the kernel."""
 STACK_SLACK = 2
-"""The stack holds ``size_class(seeds) + STACK_SLACK * wide * (max_depth + 1)`` intervals: a step
-grows it by at most its width, and the loop stops before a step could overflow it (depth first,
-the stack holds about one step's width per level)."""
+"""The stack holds ``size_class(seeds) + STACK_SLACK * wide * (DEFAULT_MAX_DEPTH + 1)`` intervals: a
+step grows it by at most its width, and the loop stops before a step could overflow it (depth
+first, the stack holds about one step's width per level). Sized by the default depth, not the
+run's, so the depth is not a compiled shape; a deeper tree that fills it continues in a further
+call."""
 LEAF_CAPACITY = 1 << 16
-"""Leaves one call may write before it returns them to the host (11 columns, 5.5 MB)."""
+"""Leaves one call may write before it returns them to the host (11 columns, 5.5 MB). A call
+returns its whole buffers, so a small batch gets smaller ones: ``size_class(trajectories) <<
+DEFAULT_MAX_DEPTH`` leaves (all a trajectory can have at the default depth), plus a step's width
+for the loop's room test. A deeper tree that fills them continues in a further call."""
 
 
 def supports(batch) -> bool:
@@ -147,7 +159,7 @@ def _evaluate(args, broad: bool, tr, dp, ix, valid):
     return t0, t1, record
 
 
-def _step(args, max_depth: int, broad: bool, wide: int, narrow: int, state):
+def _step(args, max_depth, broad: bool, wide: int, narrow: int, state):
     """One step: pop up to ``wide`` intervals off the stack (``narrow`` while it holds fewer than
     ``wide // 2``), evaluate them, write the finished ones into the leaf buffers and push both
     children of the open ones. Only the evaluation is under the branch: its operands are a step's
@@ -188,14 +200,15 @@ def _step(args, max_depth: int, broad: bool, wide: int, narrow: int, state):
             (n_leaves + final.sum()).astype(n_leaves.dtype), frontier)
 
 
-@functools.partial(jax.jit, static_argnames=("max_depth", "broad", "wide", "narrow", "leaf_capacity"))
+@functools.partial(jax.jit, static_argnames=("broad", "wide", "narrow", "leaf_capacity"))
 def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, stack, top,
-                 frontier, *, max_depth: int, broad: bool, wide: int, narrow: int, leaf_capacity: int):
+                 frontier, max_depth, *, broad: bool, wide: int, narrow: int, leaf_capacity: int):
     """The tree from ``stack`` (trajectory, depth, index arrays, the first ``top`` in use) until the
     stack is empty or the next step could overflow it or the leaf buffers. Returns ``(stack, top,
     leaves, n_leaves, frontier)``: what is left, the leaf columns (:data:`_LEAF_DTYPES`; the first
     ``n_leaves`` in use) and ``frontier`` with this call's evaluations added. ``self_check``: as
-    :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self test)."""
+    :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self test). ``max_depth``
+    is traced (an int32 scalar): every depth runs the same compiled program."""
     args = (robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check)
     capacity = stack[0].shape[0]
     leaves = tuple(jnp.zeros(leaf_capacity, d) for d in _LEAF_DTYPES)
@@ -211,11 +224,10 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
 
 
 @functools.lru_cache(maxsize=None)
-def _program(max_depth: int, broad: bool, wide: int, narrow: int, leaf_capacity: int):
+def _program(broad: bool, wide: int, narrow: int, leaf_capacity: int):
     """One callable per static configuration (:func:`~larc_jax.compilation.tracked_call` knows a
     shape it has seen by the callable)."""
-    return functools.partial(tree_program, max_depth=max_depth, broad=broad, wide=wide, narrow=narrow,
-                             leaf_capacity=leaf_capacity)
+    return functools.partial(tree_program, broad=broad, wide=wide, narrow=narrow, leaf_capacity=leaf_capacity)
 
 
 def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int = WIDE_STEP,
@@ -226,15 +238,16 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     if not supports(batch):
         raise ValueError("run_tree: the device tree runs the capsule test (and the self test) on whole scenes, on one "
                          "device, without the hull or swept stage")
-    if not (1 <= narrow <= wide <= leaf_capacity) or n_traj < 1 or max_depth < 0:
+    if not (1 <= narrow <= wide <= leaf_capacity) or n_traj < 1 or not 0 <= max_depth <= MAX_DEPTH_LIMIT:
         raise ValueError(f"run_tree: need 1 <= narrow ({narrow}) <= wide ({wide}) <= leaf_capacity "
-                         f"({leaf_capacity}), n_traj >= 1, max_depth >= 0")
-    capacity = size_class(n_traj, 1) + STACK_SLACK * wide * (max_depth + 1)
+                         f"({leaf_capacity}), n_traj >= 1, 0 <= max_depth ({max_depth}) <= {MAX_DEPTH_LIMIT}")
+    capacity = size_class(n_traj, 1) + STACK_SLACK * wide * (DEFAULT_MAX_DEPTH + 1)
+    leaf_capacity = min(leaf_capacity, (size_class(n_traj, 1) << DEFAULT_MAX_DEPTH) + wide)  # LEAF_CAPACITY
     pending = [np.arange(n_traj, dtype=np.int32), np.zeros(n_traj, np.int32), np.zeros(n_traj, np.int64)]
     rows = size_class(len(batch.t_start), 1)  # per-trajectory arrays padded as the splines are (one shape per class)
     pad = lambda x: np.concatenate([x, np.repeat(x[:1], rows - len(x))])  # noqa: E731
-    frontier = np.zeros((rows, max_depth + 1), np.int64)
-    program = _program(max_depth, bool(batch.use_broad_phase), wide, narrow, leaf_capacity)
+    frontier = np.zeros((rows, MAX_DEPTH_LIMIT + 1), np.int64)
+    program = _program(bool(batch.use_broad_phase), wide, narrow, leaf_capacity)
     sp = batch.self_pairs
     self_check = None if sp is None else (sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64),
                                           batch.self_skip)
@@ -246,8 +259,9 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
         stack = tuple(np.concatenate([p[len(p) - take:], np.zeros(capacity - take, p.dtype)]) for p in pending)
         pending = [p[: len(p) - take] for p in pending]
         with jax.enable_x64(True):
-            out = tracked_call(program, (*args, stack, np.int32(take), frontier), on_compile)
-            (s_traj, s_depth, s_index), top, leaves, n_leaves, frontier = jax.tree.map(np.asarray, out)
+            out = tracked_call(program, (*args, stack, np.int32(take), frontier, np.int32(max_depth)), on_compile)
+            (s_traj, s_depth, s_index), top, leaves, n_leaves = jax.tree.map(np.asarray, out[:4])
+            frontier = out[4]
         calls += 1
         found.append([x[: int(n_leaves)] for x in leaves])
         pending = [np.concatenate([p, s[: int(top)]]) for p, s in zip(pending, (s_traj, s_depth, s_index))]
@@ -256,4 +270,4 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     g, guard, cap, box, other, stage = (x[order] for x in columns)
     record = LeafRecord(g, guard, cap.astype(np.int64), box.astype(np.int64), other.astype(np.int64), stage)
     return TreeLeaves(traj[order].astype(np.int64), depth[order].astype(np.int64), index[order], t0[order], t1[order],
-                      record, frontier[:n_traj].copy(), calls)
+                      record, np.array(frontier)[:n_traj, : max_depth + 1], calls)
