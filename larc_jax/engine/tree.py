@@ -32,8 +32,8 @@ are rounded as NumPy rounds them (:func:`dyadic_ends_jnp`).
 
 Scope: the capsule test, with the self test or without, against whole scenes (no hull or swept
 stage, no culling), on one device; :func:`supports` says when a batch qualifies. ``certify`` does
-not use it yet (README, "The depth loop on the device": on a CPU it is slower than the host
-frontier on large batches).
+not use it yet: it does not run the cascade, the default (README, "The depth loop on the device",
+has its timings against the host frontier).
 """
 
 from __future__ import annotations
