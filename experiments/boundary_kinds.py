@@ -248,8 +248,10 @@ def stage_tables(out: Path) -> None:
               f"truth names until the certificate flips ({RESOLUTION_M * 1000:g} mm); the truth (python-fcl, "
               f"official meshes, fingers closed, {TRUTH_HZ:g} Hz + refinement) at the last certified place "
               f"(`python -m experiments.boundary_kinds`). For a mesh or a cloud, 'larc's pieces there' is the "
-              f"same truth against what larc certifies against: the convex hulls of its pieces (grown by the "
-              f"point radius); the true clearance less this is what the pieces add."]
+              f"same truth against the convex hulls of larc's pieces (grown by the point radius): for a mesh, "
+              f"what larc certifies against, so the true clearance less this is what the pieces add; a "
+              f"cloud's pieces are also searched point by point where their hulls fail (the hull stage's "
+              f"third round), so there it may be below rho."]
     atomic_write_text(out / "table.md", "\n".join(lines) + "\n")
     atomic_write_json(out / "summary.json", dict(
         config=TARGET, margin_m=MARGIN_M, target_slack_m=TARGET_SLACK_M, resolution_m=RESOLUTION_M,

@@ -356,6 +356,27 @@ def test_two_rounds_rule():
     assert len(two_rounds(np.array([1.0]), np.array([0.0]), lambda redo: 1 / 0)) == 1  # never asked
 
 
+def test_point_round_rule():
+    """Named cases of :func:`point_round`: only triples at or below their guard whose obstacle is
+    made of separate points are asked for; each gets the larger of its two values (a lower
+    per-point value never lowers it); NaN is kept and never asked for."""
+    from larc_jax.leaf.cascade import point_round
+
+    g = np.array([0.5, 0.1, 0.2, np.nan, -1.0, -1.0, 0.0])
+    guard = np.array([0.1, 0.1, 0.3, 0.0, 0.0, 0.0, 0.1])
+    separate = np.array([True, True, True, True, True, False, True])
+    asked = []
+
+    def points(redo):
+        asked.append(list(redo))
+        return np.array([0.4, 0.1, -2.0, np.nan])[: len(redo)]
+
+    out = point_round(g, guard, separate, points)
+    assert asked == [[1, 2, 4, 6]]
+    np.testing.assert_array_equal(out, [0.5, 0.4, 0.2, np.nan, -1.0, -1.0, np.nan])
+    assert len(point_round(g[:1], guard[:1], separate[:1], lambda redo: 1 / 0)) == 1  # never asked
+
+
 def test_screen_matches_reference(dataset, model):
     """The screen ahead of step 2 (:func:`link_upper_excess`) against its NumPy float64 reference
     on random intervals, links and items, and on named cases: a zero-width interval, the whole

@@ -33,7 +33,7 @@ from ..compilation import cached_kernel, tracked_call
 from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel, by_vertex_class
 from ..lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
-from ..leaf.cascade import Links, PairDetails, combine, select_pairs, two_rounds
+from ..leaf.cascade import Links, PairDetails, combine, point_round, select_pairs, two_rounds
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import RoundingBounds, dyadic_ends, rebase_ends
 from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
@@ -46,7 +46,8 @@ from ..model.spline_batch import SplineBatch, spline_batch
 from ..obstacles import ObstacleSet, stack_scenes
 from .cull import CULL_DEPTH, WIDTHS, Cull, CullPart, build_cull, worth_culling
 from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_intervals_broad, hull_first_axis, hull_pairs,
-                      hull_screen, item_margins, self_intervals, swept_capsules, swept_intervals, swept_parts)
+                      hull_points, hull_screen, item_margins, self_intervals, swept_capsules, swept_intervals,
+                      swept_parts)
 
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
@@ -353,7 +354,11 @@ class Batch:
 
     def _items(self, sel, i, k):
         """One obstacle per ``(interval i, selected item k)`` pair: the pytree leaves and their tree."""
-        return jax.tree.flatten(self.obstacles.take((sel[0][i], k) if len(sel) == 1 else (sel[0][i], sel[1][i, k])))
+        return jax.tree.flatten(self._item_set(sel, i, k))
+
+    def _item_set(self, sel, i, k) -> ObstacleSet:
+        """One obstacle per ``(interval i, selected item k)`` pair, as an obstacle set (NumPy)."""
+        return self.obstacles.take((sel[0][i], k) if len(sel) == 1 else (sel[0][i], sel[1][i, k]))
 
     def _swept_stage(self, tr, a, b, sel, on_compile) -> LeafRecord:
         """The swept stage (:mod:`larc_jax.leaf.swept`) on the intervals ``(tr, a, b)``."""
@@ -403,8 +408,9 @@ class Batch:
             buckets=CASCADE_BUCKETS, width=1) > 0)
 
     def _hull_round(self, kernel, d: PairDetails, sel, triples, on_compile) -> np.ndarray:
-        """One round of step 4 (``kernel``: :data:`hull_first_axis` or :data:`hull_pairs`) on the
-        ``(interval, part, obstacle)`` triples of the intervals ``sel``, a call per vertex class."""
+        """One round of step 4 (``kernel``: :data:`hull_first_axis`, :data:`hull_pairs` or
+        :func:`hull_points`) on the ``(interval, part, obstacle)`` triples of the intervals ``sel``,
+        a call per vertex class."""
         call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
         i, p, k = triples.T
         leaves, tree = self._items(sel, i, k)
@@ -434,6 +440,8 @@ class Batch:
             first = self._hull_round(hull_first_axis, d, sel, triples, on_compile)
             g_hull = two_rounds(first, guard_hull,
                                 lambda redo: self._hull_round(hull_pairs, d, sel, triples[redo], on_compile))
+            g_hull = point_round(g_hull, guard_hull, self._item_set(sel, i, k).separate_points(),
+                                 lambda redo: self._hull_round(hull_points, d, sel, triples[redo], on_compile))
         g, guard, cap, box, _ = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)
         return box_record(g, guard, cap, box, Stage.HULL)
 

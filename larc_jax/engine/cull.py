@@ -48,6 +48,7 @@ import numpy as np
 from ..leaf.record import CULL_SLACK_M, LeafRecord
 from ..model.scene import Scene
 from ..obstacles import stack_scenes
+from ..obstacles.convex_shapes import piece_bounds
 from .kernels import item_margins
 
 __all__ = ["Cull", "CullPart", "build_cull", "piece_clusters", "worth_culling", "CULL_MIN_PIECES", "CLUSTER_PIECES",
@@ -90,9 +91,9 @@ def piece_clusters(scene: Scene, size: int | None = None):
     ps = scene.point_sets
     if not ps.pieces:
         return [], np.zeros((0, 3)), np.zeros((0, 3))
-    r = np.asarray([ps.radius[o] for o in ps.owner], np.float64)[:, None]
-    lo = np.array([v.min(axis=0) for v in ps.pieces]) - r
-    hi = np.array([v.max(axis=0) for v in ps.pieces]) + r
+    r = np.asarray(ps.radius, np.float64)[np.asarray(ps.owner, np.int64)][:, None]
+    lo, hi = piece_bounds(ps)
+    lo, hi = lo - r, hi + r
     lo, hi = np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf)  # the subtraction's rounding
     groups = _split((lo + hi) / 2, np.arange(len(ps.pieces)), CLUSTER_PIECES if size is None else size)
     first = scene.n_boxes + scene.shapes.count

@@ -13,7 +13,7 @@ import dataclasses
 import functools
 
 from ..lazy_jax import jax, jnp
-from ..leaf.cascade import hull_pair_clearance, interval_pairs, link_upper_excess
+from ..leaf.cascade import hull_pair_clearance, hull_points_clearance, interval_pairs, link_upper_excess
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import evaluate_interval
 from ..leaf.placement import place
@@ -94,6 +94,14 @@ def hull_pairs_kernel(iterations: int):
 
 hull_first_axis = hull_pairs_kernel(0)
 hull_pairs = hull_pairs_kernel(GJK_ITERATIONS)
+
+
+@jax.jit
+def hull_points(hulls, part, T_part, items, motion_b, margin):
+    """Step 4's third round (:func:`~larc_jax.leaf.cascade.hull_points_clearance`) on T (part,
+    obstacle) pairs, with the signature of the other rounds."""
+    return jax.vmap(hull_points_clearance, in_axes=(None, 0, 0, 0, 0, None))(hulls, part, T_part, items, motion_b,
+                                                                            margin)
 
 
 @jax.jit

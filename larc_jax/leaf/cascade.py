@@ -44,7 +44,11 @@ Order of work (all of it deterministic, so every scheduler takes the same decisi
    separately compiled evaluations of that axis; tests/test_cascade.py checks the decisions
    against the full search on every triple); a triple decided in the first round records the
    first axis's clearance (on the Stage B set 72.6 % of the triples pass there, of the 80.6 %
-   that pass at all);
+   that pass at all); a third round (:func:`point_round`) takes the triples still at or below
+   their guard whose obstacle is a point cloud's piece and searches each of the piece's points
+   alone (:func:`hull_points_clearance`; R7 of :mod:`larc_jax.obstacles.convex_shapes`: the
+   piece's hull fills the gaps between its points, the points do not); such a triple records the
+   larger of its two sound values (a NaN stays NaN);
 5. per (l, k) the excess is ``max(min_capsules, min_parts)`` (parts only where tested); the
    interval's is the minimum over (l, k); it passes ("hull" stage) when that is > 0.
 
@@ -77,8 +81,9 @@ from ..obstacles.polytope import GJK_ITERATIONS
 from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
-           "hull_pair_clearance_np", "link_upper_excess", "link_upper_excess_np", "polytope_clearance",
-           "polytope_clearance_np", "Links", "select_pairs", "two_rounds", "combine", "cascade_np"]
+           "hull_pair_clearance_np", "hull_points_clearance", "link_upper_excess", "link_upper_excess_np",
+           "polytope_clearance", "polytope_clearance_np", "Links", "select_pairs", "two_rounds", "point_round",
+           "combine", "cascade_np"]
 
 @pytree_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -158,6 +163,16 @@ def hull_pair_clearance(hulls: HullModel, part, T_part, item, motion_b, margin,
                               T_part[:, 3], item, motion_b, margin, iterations)
 
 
+def hull_points_clearance(hulls: HullModel, part, T_part, item, motion_b, margin) -> jax.Array:
+    """Step 4's third round on one (part, obstacle) pair, as :func:`hull_pair_clearance` but to
+    the nearest of the obstacle's separate points
+    (:meth:`~larc_jax.obstacles.ObstacleSet.points_lower_bound`; ``-inf`` for other items)
+    (kernel; ``vmap`` it)."""
+    eps = float(jnp.finfo(motion_b.dtype).eps)
+    lb = item.points_lower_bound(hulls.vertices, part, hulls.centre[part], T_part[:, :3], T_part[:, 3])
+    return lb.astype(motion_b.dtype) - _shell(hulls.radius[part], motion_b, margin, eps)
+
+
 def polytope_clearance(vertices, part, centre, radius, R, t, item, motion, margin,
                        iterations: int = GJK_ITERATIONS) -> jax.Array:
     """``lb(conv(R vertices[part] + t), item) - (radius + motion + rho) (1 + 2 eps)``: the clearance
@@ -219,8 +234,15 @@ def hull_pair_clearance_np(hulls: HullModel, part: int, T_part, item, motion_b: 
 
     if guard is None:
         return value(GJK_ITERATIONS)
-    return float(two_rounds(np.array([value(0)]), np.array([guard], np.float64),
-                            lambda redo: np.array([value(GJK_ITERATIONS)]))[0])
+    guard = np.array([guard], np.float64)
+    g = two_rounds(np.array([value(0)]), guard, lambda redo: np.array([value(GJK_ITERATIONS)]))
+    eps = float(np.finfo(np.float64).eps)
+
+    def points(redo):
+        lb = item.points_lower_bound_np(hulls.vertices[part], hulls.centre[part], T_part[:, :3], T_part[:, 3])
+        return np.array([lb - _shell(float(hulls.radius[part]), motion_b, margin, eps)])
+
+    return float(point_round(g, guard, np.atleast_1d(item.separate_points()), points)[0])
 
 
 def polytope_clearance_np(V, centre, radius: float, R, t, item, motion: float, margin: float,
@@ -292,6 +314,18 @@ def two_rounds(g_first: np.ndarray, guard: np.ndarray, full) -> np.ndarray:
     redo = np.flatnonzero(~(g > guard))
     if len(redo):
         g[redo] = np.asarray(full(redo), np.float64)
+    return g
+
+
+def point_round(g: np.ndarray, guard: np.ndarray, separate: np.ndarray, points) -> np.ndarray:
+    """Step 4's third round: the triples (T,) at or below their ``guard`` after two rounds whose
+    obstacle is made of ``separate`` (T,) points get the larger of their value ``g`` and
+    ``points(redo)``, the per-point clearances of those triples ``redo`` (indices). Both are sound
+    lower bounds, so is the larger; a NaN stays NaN (and is not searched again)."""
+    g = np.array(g, np.float64)
+    redo = np.flatnonzero(~(g > guard) & ~np.isnan(g) & np.asarray(separate, bool))
+    if len(redo):
+        g[redo] = np.maximum(g[redo], np.asarray(points(redo), np.float64))
     return g
 
 

@@ -19,6 +19,12 @@ How the points are grouped (:func:`convex_pieces`): recursive median splits alon
 side of the group's bounding box, down to :data:`MESH_PIECE_TRIANGLES` triangles or
 :data:`CLOUD_PIECE_POINTS` points per piece. Neighbours end up together, so a piece of a
 surface is thin and its hull hugs the surface; the cost is one polytope bound per piece.
+
+A cloud's piece is also its points: the hull fills the gaps between them, so where a link
+part's bound against the hull fails, the hull stage bounds the part's distance to each point
+alone (R7 of :mod:`larc_jax.obstacles.convex_shapes`, a third round of
+:mod:`larc_jax.leaf.cascade`'s step 4). A mesh's piece is not: its triangles fill the hull's
+faces between its vertices.
 """
 
 from __future__ import annotations

@@ -48,6 +48,15 @@ of the float64 matrix read from the quaternion):
   (float64, rounded up): the rounded hull grown by ``m`` holds the true one, so ``m`` joins
   ``inflate``. A piece's bound ``d - inflate`` is lowered by ``4 u (|d| + inflate)`` for the
   subtraction. Its bounding box is exact in float64 and rounded outwards in float32 (G3).
+* R7. A cloud's piece (``separate``) is its points, each a ball of radius ``inflate`` (R6's
+  share included). The hull of the points holds them, but a face of the hull spans the gaps
+  between points (1 cm apart in a depth camera's cloud at a metre), so the hull bound can sit a
+  millimetre below the distance to the nearest point. :meth:`points_lower_bound` runs the
+  piece-hull search on each point alone (a one-vertex polytope: the obstacle's vertex is picked
+  without choice, and the kernel's own rounding is subtracted as for any piece) and takes the
+  least, less ``inflate`` as in R6: a lower bound on the distance to every ball of the piece.
+  It costs one search per point, so the hull stage runs it only as a third round, on the
+  (part, cloud piece) pairs the hull bound leaves failing (:mod:`larc_jax.leaf.cascade`).
 
 The NumPy float64 twins (suffix ``_np``) run the same steps with the float64 kernels.
 """
@@ -55,6 +64,7 @@ The NumPy float64 twins (suffix ``_np``) run the same steps with the float64 ker
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -69,7 +79,7 @@ from .polytope import (GJK_ITERATIONS, polytope_box_lower_bound, polytope_box_lo
                        polytope_hull_lower_bound_np)
 from .protocol import ObstacleSet
 
-__all__ = ["ConvexShapes", "shape_items", "piece_items", "piece_width"]
+__all__ = ["ConvexShapes", "shape_items", "piece_items", "piece_width", "piece_bounds", "padded_pieces"]
 
 _EPS64 = float(np.finfo(np.float64).eps)
 
@@ -80,8 +90,7 @@ def shape_items(scene: Scene):
     rot_err (N,)`` (R1); a piece is its axis-aligned bounding box here (its hull: :func:`piece_items`)."""
     nb, sh, ps = scene.n_boxes, scene.shapes, scene.point_sets
     lo_s, hi_s, axis_half_s, radius_s, rounded_s = local_geometry(sh)
-    lo_p = np.array([v.min(axis=0) for v in ps.pieces]).reshape(-1, 3)
-    hi_p = np.array([v.max(axis=0) for v in ps.pieces]).reshape(-1, 3)
+    lo_p, hi_p = piece_bounds(ps)
     flat = nb + ps.count  # items with R = I exactly
     R = np.concatenate([np.broadcast_to(np.eye(3), (nb, 3, 3)), sh.R_world_shape, np.broadcast_to(np.eye(3), (ps.count, 3, 3))])
     defect = np.linalg.norm(np.einsum("nji,njk->nik", R, R) - np.eye(3), axis=(1, 2))
@@ -94,17 +103,39 @@ def shape_items(scene: Scene):
             np.concatenate([np.zeros(nb, bool), rounded_s, falses]), rot_err)
 
 
+def piece_bounds(point_sets) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` (pieces, 3): each piece's axis-aligned bounding box, float64 (exact: its
+    least and largest vertex coordinates) of a :class:`~larc_jax.model.point_sets.PointSets`."""
+    V, sizes, _ = point_sets.arrays()
+    if not len(sizes):
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    return np.minimum.reduceat(V, starts, axis=0), np.maximum.reduceat(V, starts, axis=0)
+
+
+def padded_pieces(point_sets, k: int) -> np.ndarray:
+    """(pieces, k, 3): each piece's vertices padded to ``k`` rows by repeating its first."""
+    V, sizes, _ = point_sets.arrays()
+    if np.any(sizes > k):
+        raise ValueError(f"a piece has {int(sizes.max())} vertices, more than {k}")
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    j = np.arange(k)
+    return V[starts[:, None] + np.where(j[None, :] < sizes[:, None], j[None, :], 0)].reshape(len(sizes), k, 3)
+
+
 def piece_items(scene: Scene, k_vertices: int):
     """The hull part of a scene's items: ``vertices (N, K, 3)`` (a piece's vertices, padded by
     repeating its first; other items a zero row), ``polytope (N,)``, ``inflate (N,)`` (a cloud's
-    point radius), float64."""
+    point radius), ``separate (N,)`` (a cloud's piece: its points are the obstacle), float64."""
     n, start, ps = scene.n_obstacles, scene.n_boxes + scene.shapes.count, scene.point_sets
     V = np.zeros((n, k_vertices, 3))
-    polytope, inflate = np.zeros(n, bool), np.zeros(n)
-    for g, (piece, owner) in enumerate(zip(ps.pieces, ps.owner)):
-        V[start + g] = np.concatenate([piece, np.broadcast_to(piece[:1], (k_vertices - len(piece), 3))])
-        polytope[start + g], inflate[start + g] = True, ps.radius[owner]
-    return V, polytope, inflate
+    polytope, inflate, separate = np.zeros(n, bool), np.zeros(n), np.zeros(n, bool)
+    if ps.count:
+        at, owner = slice(start, start + ps.count), np.asarray(ps.owner, np.int64)
+        V[at] = padded_pieces(ps, k_vertices)
+        polytope[at], inflate[at] = True, np.asarray(ps.radius, np.float64)[owner]
+        separate[at] = (np.asarray(ps.kinds) == "points")[owner]
+    return V, polytope, inflate, separate
 
 
 def piece_width(scenes: Sequence[Scene]) -> int:
@@ -150,6 +181,9 @@ class ConvexShapes(ObstacleSet):
     inflate: Any = None
     """(..., N) subtracted from a piece's distances: a cloud's point radius, and the vertices'
     rounding in a narrower dtype (rounded up), m."""
+    separate: Any = None
+    """(..., N) whether the item is a cloud's piece: its points are the obstacle (each a ball of
+    radius ``inflate``), the hull only holds them (:meth:`points_lower_bound`)."""
     any_rounded: bool = dataclasses.field(default=True, metadata=dict(static=True))
     """Whether any item is round (static): without one the kernels skip the capsule test, so a
     scene of rotated boxes costs one box kernel per pair, not two."""
@@ -160,10 +194,11 @@ class ConvexShapes(ObstacleSet):
     def from_scene(scene: Scene) -> "ConvexShapes":
         """The items of one scene, float64, unpadded (for the NumPy references)."""
         c, R, lo, hi, z, r, rounded, rot_err = shape_items(scene)
-        V, polytope, inflate = piece_items(scene, piece_width([scene]))
+        V, polytope, inflate, separate = piece_items(scene, piece_width([scene]))
         return ConvexShapes(centre=c, rotation=R, lo=lo, hi=hi, axis_half=z, radius=r, rounded=rounded,
                             rot_err=rot_err, mask=np.ones(len(c), bool), vertices=V, polytope=polytope,
-                            inflate=inflate, any_rounded=bool(rounded.any()), any_polytope=bool(polytope.any()))
+                            inflate=inflate, separate=separate, any_rounded=bool(rounded.any()),
+                            any_polytope=bool(polytope.any()))
 
     @staticmethod
     def stack(scenes: Sequence[Scene], dtype, n_items: int | None = None) -> "ConvexShapes":
@@ -178,10 +213,11 @@ class ConvexShapes(ObstacleSet):
         rounded, mask = np.zeros((S, N), bool), np.zeros((S, N), bool)
         K = piece_width(scenes)
         V, polytope, inflate = np.zeros((S, N, K, 3)), np.zeros((S, N), bool), np.zeros((S, N))
+        separate = np.zeros((S, N), bool)
         for i, s in enumerate(scenes):
             n = s.n_obstacles
             c[i, :n], R[i, :n], lo[i, :n], hi[i, :n], z[i, :n], r[i, :n], rounded[i, :n], rot_err[i, :n] = shape_items(s)
-            V[i, :n], polytope[i, :n], inflate[i, :n] = piece_items(s, K)
+            V[i, :n], polytope[i, :n], inflate[i, :n], separate[i, :n] = piece_items(s, K)
             mask[i, :n] = True
         V_g = V.astype(dtype)  # a rounded vertex moves: the piece's distances are lowered by the most (R6)
         moved_v = np.linalg.norm(V_g.astype(np.float64) - V, axis=-1).max(axis=-1)
@@ -194,7 +230,7 @@ class ConvexShapes(ObstacleSet):
         lo_g, hi_g = boxes_outward(lo - shift[..., None], hi + shift[..., None], dtype)
         return ConvexShapes(centre=c_g, rotation=R_g, lo=lo_g, hi=hi_g, axis_half=_up(z + shift, dtype),
                             radius=_up(r + shift, dtype), rounded=rounded, rot_err=_up(rot_err, dtype), mask=mask,
-                            vertices=V_g, polytope=polytope, inflate=_up(inflate, dtype),
+                            vertices=V_g, polytope=polytope, inflate=_up(inflate, dtype), separate=separate,
                             any_rounded=bool(rounded.any()), any_polytope=bool(polytope.any()))
 
     # -- JAX kernels (one item) ------------------------------------------------------------------
@@ -225,9 +261,12 @@ class ConvexShapes(ObstacleSet):
     def _piece(self, d_box, d_hull):
         """A piece's bound: the better of its bounding box's and its hull's, less ``inflate``
         (R6, with the subtraction's rounding); other items keep ``d_box``."""
-        u = float(jnp.finfo(d_box.dtype).eps) / 2
-        d = jnp.maximum(d_box, d_hull)
-        return jnp.where(self.polytope, d - self.inflate - 4 * u * (jnp.abs(d) + self.inflate), d_box)
+        return jnp.where(self.polytope, self._less_inflate(jnp.maximum(d_box, d_hull)), d_box)
+
+    def _less_inflate(self, d):
+        """``d - inflate``, lowered by the subtraction's rounding (R6)."""
+        u = float(jnp.finfo(d.dtype).eps) / 2
+        return d - self.inflate - 4 * u * (jnp.abs(d) + self.inflate)
 
     def segment_distance(self, p0, p1):
         # A piece: its bounding box's exact distance (the capsule stage stays cheap and its broad
@@ -277,6 +316,16 @@ class ConvexShapes(ObstacleSet):
             return d
         return self._piece(d, polytope_hull_lower_bound(vertices, part, centre, R, t, self.vertices, iterations))
 
+    def points_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
+        # R7: each point of a cloud's piece is a polytope of one vertex, searched on its own; the
+        # nearest bounds the distance to the piece's points (padding rows repeat the first).
+        one = jax.vmap(lambda y: polytope_hull_lower_bound(vertices, part, centre, R, t, y[None], iterations))
+        d = self._less_inflate(jnp.min(one(self.vertices)).astype(self.inflate.dtype))
+        return jnp.where(self.separate, d, -jnp.inf)
+
+    def separate_points(self) -> np.ndarray:
+        return np.zeros(np.shape(self.mask), bool) if self.separate is None else np.asarray(self.separate, bool)
+
     # -- NumPy float64 twins -----------------------------------------------------------------------
 
     def _to_local_np(self, p):
@@ -302,7 +351,10 @@ class ConvexShapes(ObstacleSet):
     def _piece_np(self, d_box: float, d_hull) -> float:
         if not self._is_piece():
             return d_box
-        d, e = max(d_box, float(d_hull)), float(self.inflate)
+        return self._less_inflate_np(max(d_box, float(d_hull)))
+
+    def _less_inflate_np(self, d: float) -> float:
+        e = float(self.inflate)
         return d - e - 2 * _EPS64 * (abs(d) + e)
 
     def _is_piece(self) -> bool:
@@ -343,3 +395,10 @@ class ConvexShapes(ObstacleSet):
         if not self._is_piece():
             return d
         return self._piece_np(d, polytope_hull_lower_bound_np(V, centre, R, t, self.vertices, iterations))
+
+    def points_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
+        if not (self.separate is not None and bool(self.separate)):
+            return -math.inf
+        one = [polytope_hull_lower_bound_np(V, centre, R, t, y[None], iterations)
+               for y in np.asarray(self.vertices, np.float64)]
+        return self._less_inflate_np(float(np.min(one)))  # np.min: a NaN propagates

@@ -23,7 +23,11 @@ float64 twin (suffix ``_np``) for the reference scheduler and ``larc verify``:
   :mod:`larc_jax.leaf.swept`), whose support is the largest of the placements' supports.
   ``iterations`` (static) is the number of GJK steps after the first axis
   (:mod:`larc_jax.obstacles.polytope`); 0 gives the first axis's bound alone, the cheap first
-  round of the hull stage (:mod:`larc_jax.leaf.cascade`, step 4).
+  round of the hull stage (:mod:`larc_jax.leaf.cascade`, step 4);
+- ``points_lower_bound(vertices, part, centre, R, t, iterations)``: for an item that is a set of
+  separate points (a point cloud's piece, :meth:`ObstacleSet.separate_points`), a lower bound on
+  the distance from the polytope to its nearest point (the hull stage's third round); ``-inf``
+  for any other item (the default: a kind without such items need not define it).
 
 Soundness contract. Every distance kernel but ``point_distance`` returns a LOWER bound on the
 true Euclidean distance, valid for the numbers as computed (its own rounding already
@@ -93,6 +97,17 @@ class ObstacleSet(abc.ABC):
 
     @abc.abstractmethod
     def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float: ...
+
+    def points_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
+        return jnp.full((), -jnp.inf, R.dtype)
+
+    def points_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
+        return -np.inf
+
+    def separate_points(self) -> np.ndarray:
+        """(..., N) bool (NumPy): the items made of separate points, for which
+        ``points_lower_bound`` can beat ``polytope_lower_bound``; none by default."""
+        return np.zeros(np.shape(self.mask), bool)
 
     # Set-level helpers (JAX): the one-item kernels over every item of one scene's set.
 
