@@ -250,7 +250,8 @@ def test_point_round_decides_as_the_reference_and_refines_less(tmp_path, monkeyp
     window; its path of least clearance cut to 4 waypoints around where it passes nearest, depth
     <= 5, gripper stated): batched LARC and the NumPy reference take the same decisions (frontier,
     stages, clearances within 1e-9 m), both run the round, and without it LARC bisects more
-    (the piece hulls alone cannot pass some intervals the points pass)."""
+    (the piece hulls alone cannot pass some intervals the points pass). ``larc verify`` re-checks
+    the certificate, the third round's leaves with the NumPy twins."""
     import dataclasses
 
     import larc_jax as lj
@@ -259,15 +260,18 @@ def test_point_round_decides_as_the_reference_and_refines_less(tmp_path, monkeyp
     from experiments import tightness_kinds as tk
     from experiments.mesh_truth import HOLD
     from larc_jax.enclosure.robot_file import load_robot_file
-    from larc_jax.model.trajectory_files import read_trajectory
+    from larc_jax.model.trajectory_files import read_trajectory, write_trajectory
 
     robot, capsules = load_robot_file(None, hold=HOLD)
     scene = lj.read_scene(tk.write_scenes(tmp_path, ("points",))["points"])
+    assert (tmp_path / "points.yaml").is_file()
     root = Path(__file__).resolve().parent.parent / "results" / "tightness_kinds" / "dataset"
     traj = read_trajectory(root / "pad10mm" / "points" / "points_p05.yaml", robot)
     j = int(np.searchsorted(traj.t, 9.156))  # truth.csv: the least clearance, 12.8 mm, at 9.156 s
     cut = slice(j - 2, j + 2)
     traj = dataclasses.replace(traj, t=traj.t[cut] - traj.t[cut][0], q=traj.q[cut], qd=traj.qd[cut], id="cut")
+    write_trajectory(tmp_path / "cut.yaml", traj)
+    traj = read_trajectory(tmp_path / "cut.yaml", robot)
     spec = dict(margin_m=0.01, max_depth=5, enclosure="hull")
     asked = {"larc": 0, "reference": 0}
 
@@ -289,6 +293,9 @@ def test_point_round_decides_as_the_reference_and_refines_less(tmp_path, monkeyp
     np.testing.assert_array_equal(larc.frontier, ref.frontier)
     np.testing.assert_array_equal(larc.leaves.stage, ref.leaves.stage)
     np.testing.assert_allclose(larc.leaves.clearance_m, ref.leaves.clearance_m, rtol=0, atol=1e-9)
+    cert = lj.write_certificate(tmp_path / "cert.json", larc, [traj], [scene], robot, capsules,
+                                trajectory_files=[tmp_path / "cut.yaml"], scene_files=[tmp_path / "points.yaml"])
+    lj.verify_certificate(cert)
     monkeypatch.setattr(batch_module, "point_round", lambda g, guard, separate, points: g)
     hulls_only = lj.certify(traj, scene, robot, capsules, spec=lj.RunSpec(method="larc", **spec))
     assert hulls_only.frontier.sum() > larc.frontier.sum(), (hulls_only.frontier, larc.frontier)
