@@ -10,9 +10,8 @@ bucket sizes, so a process compiles a handful of shapes, not one per frontier si
 many mesh or cloud pieces is culled per subtree of intervals (:mod:`larc_jax.engine.cull`): each
 interval then meets the items its subtree kept, in lists of a few widths.
 
-Several devices (all GPUs of a machine, or CPU devices forced with ``XLA_FLAGS=
---xla_force_host_platform_device_count=N``): each batch of intervals is sharded along the interval
-axis over a 1-D mesh (``jax.sharding``); each interval still runs on one device: identical results.
+Several devices (all GPUs, or CPU devices forced with ``XLA_FLAGS=--xla_force_host_platform_device_count=N``):
+each batch of intervals is sharded along its axis over a 1-D mesh; each interval still runs on one device.
 
 Interval ends are exact dyadic fractions of the horizon (:func:`dyadic_ends`), shared by every
 certifier: neighbours compute their common end from the same fraction, so a cover has no gaps.
@@ -76,9 +75,8 @@ intervals (on Stage B one at a time, the median call held 119: 4.1 ms at 256, 2.
 
 
 CULLED_BUCKETS = (32, 128, 1024)
-"""Sizes of capsule-stage calls on culled item lists (:mod:`larc_jax.engine.cull`): each list width
-compiles its own kernels, so these calls take a short ladder (a 32-call of a few items costs
-well under a millisecond)."""
+"""Sizes of capsule-stage calls on culled item lists (:mod:`larc_jax.engine.cull`): each width compiles
+its own kernels, so a short ladder (a 32-call of a few items costs well under a millisecond)."""
 
 
 PAIR_BYTES = 512
@@ -89,9 +87,8 @@ CALL_BYTES = 2**30
 
 
 def size_class(n: int, minimum: int) -> int:
-    """Next power of two >= max(n, minimum): array sizes that vary between calls (waypoints,
-    trajectories, scenes) are rounded up to these so a process compiles a few shapes, not one
-    per distinct size (each compiled CPU executable also holds ~100 memory mappings)."""
+    """Next power of two >= max(n, minimum): sizes that vary between calls (waypoints, trajectories,
+    scenes) round up to these, so a process compiles a few shapes (each ~100 memory mappings)."""
     return 1 << (max(int(n), int(minimum)) - 1).bit_length()
 
 
@@ -158,11 +155,9 @@ class Batch:
         return tuple(jax.device_put(x, sharding) for x in arrays)
 
     def max_chunk(self, width: int | None = None) -> int:
-        """Intervals per kernel call at most when each interval meets ``width`` items (default: a
-        whole scene): the all-pairs interval kernel holds about :data:`PAIR_BYTES` per
-        capsule-obstacle pair, so a call may not exceed :data:`CALL_BYTES` (a scene of thousands
-        of mesh or cloud pieces gets small chunks; box scenes are never limited below the largest
-        bucket)."""
+        """Intervals per call at most when each meets ``width`` items (default: a whole scene): the
+        all-pairs kernel holds ~:data:`PAIR_BYTES` per capsule-obstacle pair, and a call at most
+        :data:`CALL_BYTES` (thousands of pieces: small chunks; boxes: never below the largest bucket)."""
         pairs = max(1, self.capsules.n_capsules * (self.obstacles.n_items if width is None else width))
         return max(4, 1 << max(0, (CALL_BYTES // (PAIR_BYTES * pairs)).bit_length() - 1))
 
@@ -182,11 +177,10 @@ class Batch:
                 ar, br, self.margin)
 
     def bucketed(self, call, items, on_chunk=None, buckets=BUCKETS, width: int | None = None):
-        """Run ``call(*chunk)`` over the per-item arrays ``items`` in chunks padded to
-        ``buckets`` (padding repeats the chunk's first item; its results are dropped), at most
-        :meth:`max_chunk` ``(width)`` long, and sharded over :attr:`devices`. Returns the outputs
-        (a pytree of NumPy arrays) concatenated over the items; ``on_chunk(n)`` after each chunk
-        of ``n`` items."""
+        """Run ``call(*chunk)`` over the per-item arrays ``items`` in chunks padded to ``buckets``
+        (repeating the chunk's first item; results dropped), at most :meth:`max_chunk` ``(width)``
+        long, sharded over :attr:`devices`: the outputs (NumPy pytree) concatenated over the items;
+        ``on_chunk(n)`` after each chunk of ``n`` items."""
         n = len(items[0])
         parts = []
         buckets = tuple(s for s in buckets if s <= self.max_chunk(width)) or buckets[:1]  # memory: PAIR_BYTES
@@ -215,21 +209,18 @@ class Batch:
 
     def evaluate(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                  on_compile: Callable[[bool], None] | None = None):
-        """``(a, b, record)`` for every interval (``a, b`` in the trajectory's own time axis, NumPy
-        arrays; ``record`` a :class:`~larc_jax.leaf.record.LeafRecord` of NumPy arrays): the capsule
-        test, and with :attr:`self_pairs` the self test too, composed by
-        :func:`~larc_jax.leaf.record.compose`; ``on_chunk(n)`` after each chunk of ``n`` intervals,
-        ``on_compile(True/False)`` around a compiling call."""
+        """``(a, b, record)`` for every interval (``a, b`` in its own time axis; ``record`` a NumPy
+        :class:`~larc_jax.leaf.record.LeafRecord`): the capsule test, with :attr:`self_pairs` the self
+        test too (:func:`~larc_jax.leaf.record.compose`); ``on_chunk(n)`` after each chunk of ``n``
+        intervals, ``on_compile(True/False)`` around a compiling call."""
         return self._leaf_test(traj, depth, index, on_chunk, on_compile, cascade=False)
 
     def evaluate_cascade(self, traj, depth, index, on_chunk: Callable[[int], None] | None = None,
                          on_compile: Callable[[bool], None] | None = None, may_bisect: np.ndarray | None = None):
         """The leaf test (:mod:`larc_jax.leaf.record`) on every interval: ``(a, b, record)`` as
-        :meth:`evaluate`, with the hull stage (larc_jax.leaf.cascade) where
-        :func:`~larc_jax.leaf.record.needs_hull` (the capsules fail a box and the self test, if any,
-        passes), then the swept stage (:mod:`larc_jax.leaf.swept`, with :attr:`swept`) where the leaf
-        is still open; ``record.stage`` is CAPSULE, HULL, SWEPT or NONE (``stage > 0`` iff ``g >
-        guard``). Without :attr:`hulls`, no hull stage; without :attr:`swept`, no swept stage.
+        :meth:`evaluate`, with the hull stage (larc_jax.leaf.cascade, given :attr:`hulls`) where
+        :func:`~larc_jax.leaf.record.needs_hull`, then the swept stage (:mod:`larc_jax.leaf.swept`, given
+        :attr:`swept`) where still open; ``record.stage`` is CAPSULE, HULL, SWEPT or NONE (> 0 iff g > guard).
 
         ``may_bisect`` (bool per interval; LARC: those above its deepest level): in a culled batch
         (:mod:`larc_jax.engine.cull`), such an interval meeting more items than the widest list
@@ -408,9 +399,8 @@ class Batch:
             buckets=CASCADE_BUCKETS, width=1) > 0)
 
     def _hull_round(self, kernel, d: PairDetails, sel, triples, on_compile) -> np.ndarray:
-        """One round of step 4 (``kernel``: :data:`hull_first_axis`, :data:`hull_pairs` or
-        :func:`hull_points`) on the ``(interval, part, obstacle)`` triples of the intervals ``sel``,
-        a call per vertex class."""
+        """One round of step 4 (:data:`hull_first_axis`, :data:`hull_pairs`, :func:`hull_points`) on
+        the ``(interval, part, obstacle)`` triples of the intervals ``sel``, a call per vertex class."""
         call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
         i, p, k = triples.T
         leaves, tree = self._items(sel, i, k)
