@@ -372,6 +372,24 @@ def _cmd_verify(args) -> int:
     return status
 
 
+def _cmd_points(args) -> int:
+    import json
+
+    from ..model.sensor_files import convert_sensor_file  # NumPy and the file's reader: never JAX
+
+    entries = convert_sensor_file(args.source, args.output, voxel_m=args.voxel, name=args.name)
+    if not args.quiet:
+        lines = [f"# {args.source}: {note}" for e in entries for note in e["notes"]]
+        lines += ["# file: make it relative to the scene file; add a pose if the cloud is not in the scene's frame",
+                  "obstacles:"]
+        lines += [f"  - {{name: {json.dumps(e['name'])}, type: points, file: {json.dumps(e['file'])}, "
+                  f"radius: {e['radius']!r}}}" for e in entries]  # JSON strings: valid YAML scalars
+        print("\n".join(lines))
+    for e in entries:
+        log.info("wrote %s", e["file"])
+    return EXIT_OK
+
+
 def _cmd_view(args) -> int:
     from ..products.view import view_command  # NumPy and viser: this process never loads JAX
 
@@ -384,7 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _COMMANDS = {"fit-capsules": _cmd_fit_capsules, "verify-capsules": _cmd_verify_capsules, "certify": _cmd_certify,
-             "verify": _cmd_verify, "explain": _cmd_explain, "view": _cmd_view}
+             "verify": _cmd_verify, "explain": _cmd_explain, "view": _cmd_view, "points": _cmd_points}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -216,6 +216,21 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
                    help="image to write (format from the suffix; default ID_explain.png)")
     e.set_defaults(method=METHODS[0])
 
+    pt = sub.add_parser(
+        "points", parents=common, help="convert a .pcd point cloud or an OctoMap (.bt/.ot) into scene clouds (.npy)",
+        description="Write the .npy clouds a scene's `type: points` entries read, and print those entries (YAML, "
+                    "with what each assumes as comments): a .pcd file's finite x, y, z points; an OctoMap's occupied "
+                    "leaves, one cloud per leaf size, each leaf a ball of radius size*sqrt(3)/2 about its centre. "
+                    "Exit status: 0 written, 2 bad input, 3 internal error.")
+    pt.add_argument("source", metavar="FILE", help=".pcd (needs pypcd4), .bt or .ot (needs octomap-python); "
+                    ".npy or .ply only with --voxel")
+    pt.add_argument("-o", "--output", required=True, metavar="OUT.npy",
+                    help="cloud to write (an OctoMap with several leaf sizes: OUT_0.npy, OUT_1.npy, ...)")
+    pt.add_argument("--voxel", type=float, metavar="M",
+                    help="replace the points in each cube of this edge (m) by its centre, the radius grown to cover "
+                         "them (fewer points, a sound but wider obstacle)")
+    pt.add_argument("--name", help="obstacle name in the printed entries (default: the file's stem)")
+
     w = sub.add_parser("view", parents=common, help="show a certificate in 3-D in the browser (viser)",
                        description="Serve an interactive 3-D view (robot along the trajectory, boxes, leaf cover, "
                                    "a leaf's enclosures) and print its URL; Ctrl-C stops it.")

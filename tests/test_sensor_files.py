@@ -1,0 +1,215 @@
+"""``larc points`` (larc_jax.model.sensor_files): PCL .pcd clouds and OctoMap .bt / .ot maps turned
+into the .npy clouds a scene reads. One-sided checks: every occupied OctoMap cube (the voxels
+inserted, computed from their keys in float64, independently of the binding) lies inside a
+written ball; every point a voxel reduction replaces lies inside its new ball; the .pcd points
+come back exactly; every bad input exits 2 naming the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import octomap  # larc_jax[dev] installs both readers: a missing one fails here, never skips
+import pypcd4
+import pytest
+import yaml
+
+from larc_jax.drivers import cli
+from larc_jax.errors import LarcInputError
+from larc_jax.model import sensor_files
+from larc_jax.model.scene import read_scene
+from larc_jax.model.sensor_files import convert_sensor_file, voxel_reduce, SensorCloud
+
+
+EX = Path(__file__).resolve().parent.parent / "configs" / "examples"
+KEY_ORIGIN = 32768  # OctoMap's key of the cell whose lower corner is the origin (tree_max_val)
+
+
+def larc(capsys, *args):
+    capsys.readouterr()
+    rc = cli.main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def entries_of(out: str) -> list[dict]:
+    """The ``obstacles:`` entries ``larc points`` printed (YAML, comments dropped)."""
+    return yaml.safe_load(out)["obstacles"]
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary", "binary_compressed"])
+def test_pcd_points_come_back_exactly_without_the_no_returns(capsys, tmp_path, encoding):
+    rng = np.random.default_rng(1)
+    P = rng.uniform(-2, 2, size=(500, 4)).astype(np.float32)  # x, y, z, intensity
+    P[[3, 77, 400], 1] = np.nan  # pixels with no return
+    P[9, 2] = np.inf
+    src = tmp_path / "camera.pcd"
+    pypcd4.PointCloud.from_xyzi_points(P).save(src, encoding=pypcd4.Encoding(encoding))
+    rc, out, err = larc(capsys, "points", src, "-o", tmp_path / "camera.npy")
+    assert rc == 0, err
+    written = np.load(tmp_path / "camera.npy")
+    finite = np.isfinite(P[:, :3]).all(axis=1)
+    assert written.dtype == np.float64 and np.array_equal(written, P[finite, :3].astype(np.float64))
+    (entry,) = entries_of(out)
+    assert entry == {"name": "camera", "type": "points", "file": str(tmp_path / "camera.npy"), "radius": 0.0}
+    assert "500 points read" in out and "4 without a finite x, y, z" in out
+
+
+def test_converted_camera_cloud_is_the_scene_cloud(capsys, tmp_path):
+    cloud = np.load(EX / "table_cloud.npy").astype(np.float32)
+    pypcd4.PointCloud.from_xyz_points(cloud).save(tmp_path / "table.pcd")
+    rc, out, err = larc(capsys, "points", tmp_path / "table.pcd", "-o", tmp_path / "table.npy", "--name", "table")
+    assert rc == 0, err
+    (entry,) = entries_of(out)
+    entry["file"] = "table.npy"  # relative to the scene file, as the printed comment asks
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump({"frame": "base_link", "obstacles": [entry]}))
+    scene = read_scene(tmp_path / "scene.yaml", frame="base_link")
+    assert scene.point_sets.names == ("table",) and scene.point_sets.radius == (0.0,)
+    assert np.array_equal(np.concatenate(scene.point_sets.pieces[0]), np.concatenate(
+        read_scene_pieces(cloud.astype(np.float64), tmp_path)))
+
+
+def read_scene_pieces(points: np.ndarray, folder: Path):
+    np.save(folder / "direct.npy", points)
+    (folder / "direct.yaml").write_text(yaml.safe_dump(
+        {"frame": "base_link", "obstacles": [{"name": "table", "type": "points", "file": "direct.npy"}]}))
+    return read_scene(folder / "direct.yaml", frame="base_link").point_sets.pieces[0]
+
+
+def _octomap(tmp_path, resolution: float, voxels: np.ndarray, block: np.ndarray, free: np.ndarray):
+    """A map with the finest voxels ``voxels`` (integer indices: the cube [i, i + 1] * resolution)
+    occupied, the 2x2x2 block at even corner ``block`` occupied (pruned into one leaf) and
+    ``free`` observed free; written as .bt and .ot."""
+    tree = octomap.OcTree(resolution)
+    centre = lambda i: (np.asarray(i, np.float64) + 0.5) * resolution  # noqa: E731
+    for i in voxels:
+        tree.updateNode(centre(i), True)
+    for d in np.ndindex(2, 2, 2):
+        tree.updateNode(centre(block + np.array(d)), True)
+    tree.updateNode(centre(free), False)
+    tree.updateInnerOccupancy()
+    assert tree.writeBinary(str(tmp_path / "map.bt").encode()) and tree.write(str(tmp_path / "map.ot").encode())
+
+
+@pytest.mark.parametrize("suffix", [".bt", ".ot"])
+def test_octomap_balls_hold_every_occupied_cube(capsys, tmp_path, suffix):
+    rng = np.random.default_rng(2)
+    resolution = 0.05
+    voxels = np.unique(rng.integers(-120, 120, size=(300, 3)), axis=0)  # up to 6 m from the origin
+    block = np.array([60, 80, -100])
+    free = np.array([61, -90, 11])
+    voxels = voxels[~np.all((voxels >= block) & (voxels <= block + 1), axis=1) & ~np.all(voxels == free, axis=1)]
+    _octomap(tmp_path, resolution, voxels, block, free)
+    rc, out, err = larc(capsys, "points", tmp_path / f"map{suffix}", "-o", tmp_path / "map.npy")
+    assert rc == 0, err
+    entries = entries_of(out)
+    assert [e["file"] for e in entries] == [str(tmp_path / "map_0.npy"), str(tmp_path / "map_1.npy")]
+    assert "unknown space are not obstacles" in out
+    centres = [np.load(e["file"]) for e in entries]
+    radius = [e["radius"] for e in entries]
+    assert [len(c) for c in centres] == [len(voxels), 1]
+    assert radius[0] > resolution * np.sqrt(3) / 2 and radius[1] > 2 * resolution * np.sqrt(3) / 2
+    # Every corner of every occupied finest voxel (float64, from its index) lies in some ball.
+    occupied = np.concatenate([voxels, block + np.array(list(np.ndindex(2, 2, 2)))])
+    corners = ((occupied[:, None, :] + np.array(list(np.ndindex(2, 2, 2)))[None]) * resolution).reshape(-1, 3)
+    inside = np.zeros(len(corners), bool)
+    for C, r in zip(centres, radius):
+        for chunk in range(0, len(corners), 512):
+            d = np.linalg.norm(corners[chunk:chunk + 512, None, :] - C[None], axis=2).min(axis=1)
+            inside[chunk:chunk + 512] |= d <= r
+    assert inside.all()
+    # Without the single-precision term the farthest corners fall outside: the term is needed.
+    bare = resolution * np.sqrt(3) / 2
+    d = np.linalg.norm(corners[:, None, :] - centres[0][None], axis=2).min(axis=1)[: 8 * len(voxels)]
+    assert d.max() > bare
+    # The free voxel is no obstacle.
+    assert np.linalg.norm(centres[0] - (free + 0.5) * resolution, axis=1).min() > resolution / 2
+
+
+def test_octomap_without_occupied_leaves_is_refused(capsys, tmp_path):
+    tree = octomap.OcTree(0.1)
+    tree.updateNode(np.array([0.05, 0.05, 0.05]), False)
+    tree.updateInnerOccupancy()
+    assert tree.writeBinary(str(tmp_path / "empty.bt").encode())
+    rc, _, err = larc(capsys, "points", tmp_path / "empty.bt", "-o", tmp_path / "x.npy")
+    assert rc == 2 and "empty.bt: the map has no occupied leaf" in err
+
+
+@pytest.mark.parametrize("radius", [0.0, 0.004])
+def test_voxel_reduction_holds_every_ball(radius):
+    rng = np.random.default_rng(3)
+    corners = lambda lo, n: np.round(rng.uniform(lo, lo + 1, size=(n, 3)) / 0.02) * 0.02  # noqa: E731 - on grid corners
+    P = np.concatenate([rng.uniform(-1.5, 1.5, size=(4000, 3)), rng.uniform(999.0, 1001.0, size=(500, 3)),
+                        corners(-0.5, 200), corners(1e5, 2000)])  # 100 km out the centres' rounding shows
+    out = voxel_reduce(SensorCloud(P, radius), 0.02)
+    assert len(out.points) < len(P)
+    cell = np.floor(P / 0.02)
+    keys, inverse = np.unique(cell, axis=0, return_inverse=True)
+    assert np.array_equal(out.points, (keys + 0.5) * 0.02)
+    reach = np.linalg.norm(P - out.points[inverse.reshape(-1)], axis=1) + radius
+    assert reach.max() <= out.radius_m and out.radius_m >= radius + 0.02 * np.sqrt(3) / 2
+    assert out.radius_m < radius + 0.02 * np.sqrt(3) / 2 + 1e-9
+
+
+def test_voxel_option_reduces_an_npy_cloud(capsys, tmp_path):
+    P = np.random.default_rng(4).uniform(-1, 1, size=(3000, 3))
+    np.save(tmp_path / "dense.npy", P)
+    rc, out, err = larc(capsys, "points", tmp_path / "dense.npy", "-o", tmp_path / "coarse.npy", "--voxel", "0.1")
+    assert rc == 0, err
+    (entry,) = entries_of(out)
+    C = np.load(tmp_path / "coarse.npy")
+    assert len(C) <= 8000 and entry["radius"] >= 0.1 * np.sqrt(3) / 2
+    assert np.linalg.norm(P[:, None] - C[None], axis=2).min(axis=1).max() <= entry["radius"]
+
+
+def test_too_many_points_ask_for_a_voxel_grid(capsys, tmp_path, monkeypatch):
+    monkeypatch.setattr(sensor_files, "MAX_POINTS", 100)
+    pypcd4.PointCloud.from_xyz_points(np.random.default_rng(5).normal(size=(101, 3)).astype(np.float32)).save(
+        tmp_path / "big.pcd")
+    rc, _, err = larc(capsys, "points", tmp_path / "big.pcd", "-o", tmp_path / "big.npy")
+    assert rc == 2 and "big.pcd: 101 points, more than a scene's 100 per cloud" in err and "--voxel" in err
+    rc, _, err = larc(capsys, "points", tmp_path / "big.pcd", "-o", tmp_path / "big.npy", "--voxel", "5")
+    assert rc == 0, err
+
+
+def _pcd_without_z(path: Path):
+    pypcd4.PointCloud.from_points(np.ones((4, 2), np.float32), ("x", "y"), (np.float32, np.float32)).save(path)
+
+
+@pytest.mark.parametrize("make, args, needle", [
+    (lambda p: p.with_suffix(".pcd").write_bytes(b"VERSION 0.7\nFIELDS x y\ngarbage"), (), "not a readable .pcd file"),
+    (lambda p: _pcd_without_z(p.with_suffix(".pcd")), (), "the .pcd file has no field z (fields: x, y)"),
+    (lambda p: pypcd4.PointCloud.from_xyz_points(np.full((3, 3), np.nan, np.float32)).save(p.with_suffix(".pcd")),
+     (), "the file has no point with a finite x, y, z"),
+    (lambda p: None, (), "no such file"),
+    (lambda p: p.with_suffix(".xyz").write_text("1 2 3\n"), (), "cannot convert '.xyz' files"),
+    (lambda p: np.save(p.with_suffix(".npy"), np.zeros((2, 3))), (), "scenes read it directly"),
+    (lambda p: p.with_suffix(".bt").write_bytes(b"# Octomap OcTree binary file\nnonsense"), (),
+     "not a readable OctoMap file"),
+    (lambda p: pypcd4.PointCloud.from_xyz_points(np.zeros((2, 3), np.float32)).save(p.with_suffix(".pcd")),
+     ("--voxel", "0"), "--voxel must be a finite length > 0 m"),
+])
+def test_bad_input_exits_2_naming_the_file(capsys, tmp_path, make, args, needle):
+    base = tmp_path / "in"
+    make(base)
+    src = next(iter(sorted(tmp_path.glob("in.*"))), base.with_suffix(".pcd"))
+    rc, out, err = larc(capsys, "points", src, "-o", tmp_path / "out.npy", *args)
+    assert rc == 2 and needle in err and out == "", err
+    assert str(src) in err or needle.startswith("--voxel")  # an option's error names the option
+    assert not (tmp_path / "out.npy").exists()
+
+
+def test_output_must_be_npy(tmp_path):
+    pypcd4.PointCloud.from_xyz_points(np.zeros((2, 3), np.float32)).save(tmp_path / "a.pcd")
+    with pytest.raises(LarcInputError, match="the output must be an .npy file"):
+        convert_sensor_file(tmp_path / "a.pcd", tmp_path / "a.ply")
+
+
+def test_a_pcd_viewpoint_is_reported_not_applied(capsys, tmp_path):
+    pc = pypcd4.PointCloud.from_xyz_points(np.array([[1, 2, 3], [4, 5, 6]], np.float32))
+    metadata = pc.metadata.model_copy(update={"viewpoint": (0.5, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)})
+    pypcd4.PointCloud(metadata, pc.pc_data).save(tmp_path / "posed.pcd")
+    rc, out, err = larc(capsys, "points", tmp_path / "posed.pcd", "-o", tmp_path / "posed.npy")
+    assert rc == 0, err
+    assert "VIEWPOINT (sensor pose tx ty tz qw qx qy qz = 0.5 0 1 0 0 0 1) is not applied" in out
+    assert np.array_equal(np.load(tmp_path / "posed.npy"), [[1, 2, 3], [4, 5, 6]])
