@@ -104,7 +104,7 @@ def test_octomap_balls_hold_every_occupied_cube(capsys, tmp_path, suffix):
     assert rc == 0, err
     entries = entries_of(out)
     assert [e["file"] for e in entries] == [str(tmp_path / "map_0.npy"), str(tmp_path / "map_1.npy")]
-    assert "unknown space are not obstacles" in out
+    assert "free space is not an obstacle, nor unknown space (nothing is proven" in out
     centres = [np.load(e["file"]) for e in entries]
     radius = [e["radius"] for e in entries]
     assert [len(c) for c in centres] == [len(voxels), 1]
@@ -213,3 +213,75 @@ def test_a_pcd_viewpoint_is_reported_not_applied(capsys, tmp_path):
     assert rc == 0, err
     assert "VIEWPOINT (sensor pose tx ty tz qw qx qy qz = 0.5 0 1 0 0 0 1) is not applied" in out
     assert np.array_equal(np.load(tmp_path / "posed.npy"), [[1, 2, 3], [4, 5, 6]])
+
+
+def test_unknown_voxels_in_a_box_become_obstacles_and_known_ones_do_not(capsys, tmp_path):
+    resolution = 0.05
+    rng = np.random.default_rng(6)
+    box_lo, box_hi = np.array([-0.23, 0.1, -0.4]), np.array([0.31, 0.52, 0.0])  # not on voxel faces
+    first = np.floor(box_lo / resolution).astype(int) - 1
+    last = np.floor(box_hi / resolution).astype(int) + 1
+    grid = np.stack(np.meshgrid(*[np.arange(f, l + 1) for f, l in zip(first, last)], indexing="ij"), -1).reshape(-1, 3)
+    pick = rng.permutation(len(grid))
+    occupied, free = grid[pick[:60]], grid[pick[60:400]]
+    tree = octomap.OcTree(resolution)
+    for i in occupied:
+        tree.updateNode((i + 0.5) * resolution, True)
+    for i in free:
+        tree.updateNode((i + 0.5) * resolution, False)
+    tree.updateInnerOccupancy()
+    assert tree.writeBinary(str(tmp_path / "ws.bt").encode())
+    rc, out, err = larc(capsys, "points", tmp_path / "ws.bt", "-o", tmp_path / "ws.npy",
+                        "--unknown-in", *box_lo, *box_hi)
+    assert rc == 0, err
+    entries = entries_of(out)
+    assert len(entries) == 2 and "neither occupied nor free: obstacles" in out and "outside the --unknown-in box" in out
+    clouds = [(np.load(e["file"]), e["radius"]) for e in entries]
+    unknown = grid[pick[400:]]
+    assert len(clouds[1][0]) == len(unknown)  # every other voxel of the widened box
+    # Every corner of every voxel not known free lies in a written ball: the box is covered.
+    solid = np.concatenate([occupied, unknown])
+    corners = ((solid[:, None, :] + np.array(list(np.ndindex(2, 2, 2)))[None]) * resolution).reshape(-1, 3)
+    inside = np.zeros(len(corners), bool)
+    for C, r in clouds:
+        inside |= np.linalg.norm(corners[:, None] - C[None], axis=2).min(axis=1) <= r
+    assert inside.all()
+    # No known-free voxel's centre is written.
+    written = np.concatenate([C for C, _ in clouds])
+    assert np.linalg.norm(((free + 0.5) * resolution)[:, None] - written[None], axis=2).min() > resolution / 2
+
+
+@pytest.mark.parametrize("args, needle", [
+    (("--unknown-in", "0", "0", "0", "-1", "1", "1"), "--unknown-in: expected XMIN YMIN ZMIN XMAX YMAX ZMAX"),
+    (("--unknown-in", "-50", "-50", "-50", "50", "50", "50"), "more than 10000000: give a smaller box"),
+])
+def test_unknown_in_errors(capsys, tmp_path, args, needle):
+    tree = octomap.OcTree(0.05)
+    tree.updateNode(np.array([0.01, 0.01, 0.01]), True)
+    tree.updateInnerOccupancy()
+    assert tree.writeBinary(str(tmp_path / "m.bt").encode())
+    rc, _, err = larc(capsys, "points", tmp_path / "m.bt", "-o", tmp_path / "m.npy", *args)
+    assert rc == 2 and needle in err, err
+    pypcd4.PointCloud.from_xyz_points(np.zeros((2, 3), np.float32)).save(tmp_path / "c.pcd")
+    rc, _, err = larc(capsys, "points", tmp_path / "c.pcd", "-o", tmp_path / "c.npy", "--unknown-in", 0, 0, 0, 1, 1, 1)
+    assert rc == 2 and "c.pcd: --unknown-in applies to OctoMap files (.bt, .ot) only" in err
+
+
+def test_a_colour_octree_reads_as_its_occupancy(capsys, tmp_path):
+    tree = octomap.ColorOcTree(0.05)
+    for c in ([0.01, 0.01, 0.01], [0.31, 0.01, 0.01]):
+        tree.updateNode(np.array(c), True)
+    tree.updateNode(np.array([0.61, 0.01, 0.01]), False)
+    tree.updateInnerOccupancy()
+    assert tree.write(str(tmp_path / "colour.ot").encode())
+    rc, out, err = larc(capsys, "points", tmp_path / "colour.ot", "-o", tmp_path / "colour.npy")
+    assert rc == 0, err
+    assert np.allclose(np.load(tmp_path / "colour.npy"), [[0.025, 0.025, 0.025], [0.325, 0.025, 0.025]], atol=1e-7)
+
+
+@pytest.mark.parametrize("module, suffix, package", [("pypcd4", ".pcd", "pypcd4"), ("octomap", ".bt", "octomap-python")])
+def test_a_missing_reader_is_named(capsys, tmp_path, monkeypatch, module, suffix, package):
+    monkeypatch.setitem(__import__("sys").modules, module, None)  # import fails as when not installed
+    (tmp_path / f"f{suffix}").write_bytes(b"x")
+    rc, _, err = larc(capsys, "points", tmp_path / f"f{suffix}", "-o", tmp_path / "f.npy")
+    assert rc == 2 and f"needs {package} (pip install 'larc_jax[clouds]')" in err, err

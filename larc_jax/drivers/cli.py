@@ -377,7 +377,8 @@ def _cmd_points(args) -> int:
 
     from ..model.sensor_files import convert_sensor_file  # NumPy and the file's reader: never JAX
 
-    entries = convert_sensor_file(args.source, args.output, voxel_m=args.voxel, name=args.name)
+    entries = convert_sensor_file(args.source, args.output, voxel_m=args.voxel, name=args.name,
+                                  unknown_in=args.unknown_in)
     if not args.quiet:
         lines = [f"# {args.source}: {note}" for e in entries for note in e["notes"]]
         lines += ["# file: make it relative to the scene file; add a pose if the cloud is not in the scene's frame",

@@ -230,6 +230,9 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
                     help="replace the points in each cube of this edge (m) by its centre, the radius grown to cover "
                          "them (fewer points, a sound but wider obstacle)")
     pt.add_argument("--name", help="obstacle name in the printed entries (default: the file's stem)")
+    pt.add_argument("--unknown-in", nargs=6, type=float, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                    help="OctoMap only: also make obstacles of the voxels meeting this box (m, the map's frame) that "
+                         "the map holds neither occupied nor free (unknown space is otherwise not an obstacle)")
 
     w = sub.add_parser("view", parents=common, help="show a certificate in 3-D in the browser (viser)",
                        description="Serve an interactive 3-D view (robot along the trajectory, boxes, leaf cover, "

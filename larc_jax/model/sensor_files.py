@@ -16,8 +16,10 @@ each converted obstacle assumes.
   or a power of two times it where the map pruned eight equal children into one); the ball of
   radius ``s·√3/2`` about its centre contains it, so each leaf becomes a point of a cloud of that
   radius (plus the single-precision rounding of the centres the binding gives, ``√3·2^-22·max|c|``),
-  one cloud per leaf size. Free and unknown space are not obstacles: a certificate
-  against a map says nothing of space its sensor never saw (stated in the output).
+  one cloud per leaf size. Free and unknown space are not obstacles: a certificate against a
+  map says nothing of space its sensor never saw (stated in the output), unless ``unknown_in``
+  names a box (the workspace): then every finest voxel meeting it that the map holds neither
+  occupied nor free is an obstacle too (:func:`unknown_voxels`).
 * **Voxel reduction** (``voxel_m``, any input): the points in each cube of a grid of edge ``S``
   become the cube's centre, and the cloud's radius grows by the largest distance from a point to
   its centre (at most ``S·√3/2``). Every original ball then lies inside the new ball about its
@@ -43,7 +45,7 @@ from ..errors import LarcInputError
 from ..io import short_repr
 from .point_sets import MAX_POINTS
 
-__all__ = ["SensorCloud", "read_pcd", "read_plain", "read_octomap", "voxel_reduce", "radius_up", "convert_sensor_file",
+__all__ = ["SensorCloud", "read_pcd", "read_plain", "read_octomap", "unknown_voxels", "voxel_reduce", "radius_up", "convert_sensor_file",
            "POINT_SUFFIXES", "OCTOMAP_SUFFIXES"]
 
 POINT_SUFFIXES = (".pcd",)
@@ -139,9 +141,11 @@ def _finite(P: np.ndarray, path: Path, notes: tuple) -> SensorCloud:
     return SensorCloud(P[finite], 0.0, notes)
 
 
-def read_octomap(path: str | Path) -> list[SensorCloud]:
+def read_octomap(path: str | Path, unknown_in=None) -> list[SensorCloud]:
     """The occupied leaves of an OctoMap ``.bt`` / ``.ot`` file, as one cloud per leaf size (the
-    leaves' centres, radius ``size·√3/2`` rounded up), smallest size first."""
+    leaves' centres, radius ``size·√3/2`` rounded up), smallest size first; with ``unknown_in``
+    (``xmin, ymin, zmin, xmax, ymax, zmax``, m, the map's frame) also the finest voxels meeting
+    that box which the map holds neither occupied nor free (:func:`unknown_voxels`)."""
     path = Path(path)
     octomap = _need("octomap", "octomap-python", path)
     if not path.is_file():
@@ -162,23 +166,66 @@ def read_octomap(path: str | Path) -> list[SensorCloud]:
         if tree.isNodeOccupied(leaf):
             centres.append(np.asarray(leaf.getCoordinate(), np.float64))
             sizes.append(float(leaf.getSize()))
-    if not centres:
-        raise LarcInputError(f"{path}: the map has no occupied leaf")
-    C, S = np.asarray(centres).reshape(-1, 3), np.asarray(sizes)
+    C, S = np.asarray(centres, np.float64).reshape(-1, 3), np.asarray(sizes, np.float64)
     if not (np.isfinite(C).all() and np.isfinite(S).all() and (S > 0).all()):
         raise LarcInputError(f"{path}: a leaf's centre or size is not finite")
+    unknown = "free space is not an obstacle, nor unknown space " + (
+        "outside the --unknown-in box" if unknown_in is not None else
+        "(nothing is proven about space the map does not hold as occupied; --unknown-in makes a box's unknown "
+        "voxels obstacles)")
     out = []
     for s in np.unique(S):
         notes = (f"{int((S == s).sum())} occupied leaves of edge {s:g} m (resolution {tree.getResolution():g} m), "
-                 f"each inside a ball of radius {s:g}·√3/2 about its centre",
-                 "free and unknown space are not obstacles: nothing is proven about space the map does not hold "
-                 "as occupied")
+                 f"each inside a ball of radius {s:g}·√3/2 about its centre", unknown)
         # The binding gives centres in single precision (OctoMap's point3d, a double rounded to
         # float): each coordinate is within 2^-24 |c| of the leaf's own, so the ball grows by
         # sqrt(3) 2^-22 max|c| (four times that) to hold the leaf about its real centre.
         error = math.sqrt(3.0) * 2.0**-22 * float(np.abs(C[S == s]).max())
         out.append(SensorCloud(C[S == s], radius_up(s * HALF_DIAGONAL + error), notes))
+    if unknown_in is not None:
+        out += unknown_voxels(tree, unknown_in, path)
+    if not out:
+        raise LarcInputError(f"{path}: the map has no occupied leaf" + (" and no unknown voxel in the --unknown-in box"
+                                                                          if unknown_in is not None else ""))
     return out
+
+
+MAX_PROBED = 10_000_000
+"""Voxels of an ``--unknown-in`` box looked up at most (the binding looks up about a million a second)."""
+
+
+def unknown_voxels(tree, box, path: Path) -> list[SensorCloud]:
+    """The finest voxels of ``tree`` meeting ``box`` (``xmin, ymin, zmin, xmax, ymax, zmax``, m)
+    that it holds neither occupied nor free (``getLabels`` -1), as a cloud of their centres with
+    radius ``resolution·√3/2`` rounded up ([] when there is none). Voxel ``i`` of an axis is the
+    cell ``[i, i + 1]·resolution`` (OctoMap's keys); the range is widened by one voxel on each
+    side, so the box is covered whatever the rounding of ``box / resolution``; the centres
+    ``(i + 1/2)·resolution`` are float64, within ``4 eps |c|`` of the cell's real centre."""
+    box = np.asarray(box, np.float64).reshape(-1)
+    lo, hi = box[:3], box[3:]
+    if box.shape != (6,) or not np.isfinite(box).all() or not (lo <= hi).all():
+        raise LarcInputError(f"--unknown-in: expected XMIN YMIN ZMIN XMAX YMAX ZMAX (m, finite, each min <= max), "
+                             f"got {short_repr(box.tolist())}")
+    res = float(tree.getResolution())
+    first, last = np.floor(lo / res) - 1, np.floor(hi / res) + 1
+    shape = (last - first + 1).astype(np.int64)
+    if int(np.prod(shape)) > MAX_PROBED:
+        raise LarcInputError(f"{path}: the --unknown-in box meets {int(np.prod(shape))} voxels of "
+                             f"{res:g} m, more than {MAX_PROBED}: give a smaller box")
+    yz = np.stack(np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij"), -1).reshape(-1, 2)
+    found = []
+    for ix in range(shape[0]):  # one slab of the box at a time: memory of one slab
+        idx = np.column_stack([np.full(len(yz), ix), yz]) + first
+        centres = (idx + 0.5) * res
+        found.append(centres[np.asarray(tree.getLabels(centres)) < 0])
+    U = np.concatenate(found)
+    if not len(U):
+        return []
+    error = math.sqrt(3.0) * 4 * float(np.finfo(np.float64).eps) * float(np.abs(U).max())
+    note = (f"{len(U)} voxels of edge {res:g} m meeting the box [{', '.join(f'{v:g}' for v in lo)}] - "
+            f"[{', '.join(f'{v:g}' for v in hi)}] that the map holds neither occupied nor free: obstacles, each "
+            f"inside a ball of radius {res:g}·√3/2 about its centre")
+    return [SensorCloud(U, radius_up(res * HALF_DIAGONAL + error), (note,))]
 
 
 def voxel_reduce(cloud: SensorCloud, voxel_m: float) -> SensorCloud:
@@ -197,7 +244,7 @@ def voxel_reduce(cloud: SensorCloud, voxel_m: float) -> SensorCloud:
 
 
 def convert_sensor_file(src: str | Path, out: str | Path, voxel_m: float | None = None,
-                        name: str | None = None) -> list[dict]:
+                        name: str | None = None, unknown_in=None) -> list[dict]:
     """Convert ``src`` (:data:`POINT_SUFFIXES` or :data:`OCTOMAP_SUFFIXES`) into ``.npy`` clouds
     (float64, (N, 3), written atomically): ``out`` itself, or, for a map with several leaf sizes,
     ``<out stem>_<k>.npy`` per size. Returns one scene ``obstacles:`` entry per file written
@@ -207,12 +254,14 @@ def convert_sensor_file(src: str | Path, out: str | Path, voxel_m: float | None 
 
     src, out = Path(src), Path(out)
     suffix = src.suffix.lower()
+    if unknown_in is not None and suffix not in OCTOMAP_SUFFIXES:
+        raise LarcInputError(f"{src}: --unknown-in applies to OctoMap files ({', '.join(OCTOMAP_SUFFIXES)}) only")
     if out.suffix.lower() != ".npy":
         raise LarcInputError(f"{out}: the output must be an .npy file (what a scene's points entry reads)")
     if suffix in POINT_SUFFIXES:
         clouds = [read_pcd(src)]
     elif suffix in OCTOMAP_SUFFIXES:
-        clouds = read_octomap(src)
+        clouds = read_octomap(src, unknown_in)
     elif suffix in (".npy", ".ply") and voxel_m is not None:
         clouds = [read_plain(src)]
     else:
