@@ -188,6 +188,8 @@ def _pcd_without_z(path: Path):
      "not a readable OctoMap file"),
     (lambda p: pypcd4.PointCloud.from_xyz_points(np.zeros((2, 3), np.float32)).save(p.with_suffix(".pcd")),
      ("--voxel", "0"), "--voxel must be a finite length > 0 m"),
+    (lambda p: np.save(p.with_suffix(".npy"), np.array([[0, 0, 0], [1, np.nan, 0]])), ("--voxel", "0.1"),
+     "point 1 is not finite"),
 ])
 def test_bad_input_exits_2_naming_the_file(capsys, tmp_path, make, args, needle):
     base = tmp_path / "in"

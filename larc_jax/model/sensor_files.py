@@ -45,7 +45,7 @@ from ..errors import LarcInputError
 from ..io import short_repr
 from .point_sets import MAX_POINTS
 
-__all__ = ["SensorCloud", "read_pcd", "read_plain", "read_octomap", "unknown_voxels", "voxel_reduce", "radius_up", "convert_sensor_file",
+__all__ = ["SensorCloud", "read_pcd", "read_plain", "read_octomap", "unknown_voxels", "check_voxel", "voxel_reduce", "radius_up", "convert_sensor_file",
            "POINT_SUFFIXES", "OCTOMAP_SUFFIXES"]
 
 POINT_SUFFIXES = (".pcd",)
@@ -108,12 +108,19 @@ def read_pcd(path: str | Path) -> SensorCloud:
     if vp.shape == (7,) and not np.array_equal(vp, [0, 0, 0, 1, 0, 0, 0]):
         notes = (f"its VIEWPOINT (sensor pose tx ty tz qw qx qy qz = {' '.join(f'{v:g}' for v in vp)}) is not "
                  f"applied: place the cloud with the entry's pose",)
-    return _finite(P, path, notes)
+    finite = np.isfinite(P).all(axis=1)
+    notes += (f"{len(P)} points read",)
+    if not finite.all():
+        notes += (f"{int((~finite).sum())} without a finite x, y, z (no return) dropped",)
+    if not finite.any():
+        raise LarcInputError(f"{path}: the file has no point with a finite x, y, z")
+    return SensorCloud(P[finite], 0.0, notes)
 
 
 def read_plain(path: str | Path) -> SensorCloud:
-    """The finite points of an ``.npy`` (N, 3) array or a ``.ply`` cloud of any size (radius 0;
-    the scene reader's limit of points does not apply: this is what reduces a larger cloud)."""
+    """The points of an ``.npy`` (N, 3) array or a ``.ply`` cloud of any size (radius 0), checked as
+    the scene reader checks them (numbers, finite) except for its limit of points: this is what
+    reduces a larger cloud."""
     path = Path(path)
     if not path.is_file():
         raise LarcInputError(f"{path}: no such file")
@@ -126,19 +133,13 @@ def read_plain(path: str | Path) -> SensorCloud:
             P = np.asarray(trimesh.load(path, file_type="ply").vertices)
     except Exception as exc:  # noqa: BLE001 - NumPy and trimesh raise many kinds for a bad file
         raise LarcInputError(f"{path}: not a readable {path.suffix} point file ({type(exc).__name__})") from None
-    if P.dtype.kind not in "iuf" or P.ndim != 2 or P.shape[1] != 3:
-        raise LarcInputError(f"{path}: expected an (N, 3) array of numbers, got shape {P.shape} of dtype {P.dtype}")
-    return _finite(P.astype(np.float64), path, ())
-
-
-def _finite(P: np.ndarray, path: Path, notes: tuple) -> SensorCloud:
-    finite = np.isfinite(P).all(axis=1)
-    notes = notes + (f"{len(P)} points read",)
-    if not finite.all():
-        notes += (f"{int((~finite).sum())} without a finite x, y, z (no return) dropped",)
-    if not finite.any():
-        raise LarcInputError(f"{path}: the file has no point with a finite x, y, z")
-    return SensorCloud(P[finite], 0.0, notes)
+    if P.dtype.kind not in "iuf" or P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
+        raise LarcInputError(f"{path}: expected an (N, 3) array of numbers with N >= 1, got shape {P.shape} "
+                             f"of dtype {P.dtype}")
+    P = P.astype(np.float64)
+    if not np.isfinite(P).all():  # as the scene reader: here a non-finite point is bad data, not a no-return
+        raise LarcInputError(f"{path}: point {int(np.argwhere(~np.isfinite(P))[0][0])} is not finite")
+    return SensorCloud(P, 0.0, (f"{len(P)} points read",))
 
 
 def read_octomap(path: str | Path, unknown_in=None) -> list[SensorCloud]:
@@ -228,11 +229,16 @@ def unknown_voxels(tree, box, path: Path) -> list[SensorCloud]:
     return [SensorCloud(U, radius_up(res * HALF_DIAGONAL + error), (note,))]
 
 
+def check_voxel(voxel_m: float) -> None:
+    """:class:`LarcInputError` unless ``voxel_m`` is a finite length > 0."""
+    if not (math.isfinite(voxel_m) and voxel_m > 0):
+        raise LarcInputError(f"--voxel must be a finite length > 0 m, got {short_repr(voxel_m)}")
+
+
 def voxel_reduce(cloud: SensorCloud, voxel_m: float) -> SensorCloud:
     """``cloud`` with the points of each grid cube of edge ``voxel_m`` replaced by the cube's
     centre and the radius grown by the largest point-to-centre distance (module docstring)."""
-    if not (math.isfinite(voxel_m) and voxel_m > 0):
-        raise LarcInputError(f"--voxel must be a finite length > 0 m, got {short_repr(voxel_m)}")
+    check_voxel(voxel_m)
     cell = np.floor(cloud.points / voxel_m)
     keys, inverse = np.unique(cell, axis=0, return_inverse=True)
     centres = (keys + 0.5) * voxel_m
@@ -258,6 +264,8 @@ def convert_sensor_file(src: str | Path, out: str | Path, voxel_m: float | None 
         raise LarcInputError(f"{src}: --unknown-in applies to OctoMap files ({', '.join(OCTOMAP_SUFFIXES)}) only")
     if out.suffix.lower() != ".npy":
         raise LarcInputError(f"{out}: the output must be an .npy file (what a scene's points entry reads)")
+    if voxel_m is not None:
+        check_voxel(voxel_m)  # before reading the file
     if suffix in POINT_SUFFIXES:
         clouds = [read_pcd(src)]
     elif suffix in OCTOMAP_SUFFIXES:
