@@ -23,6 +23,7 @@ from larc_jax.model.hermite import (
     evaluate_np,
     num_table_levels,
     pad_waypoints,
+    pad_waypoints_batch,
     segment_speed_max,
     speed_max,
     speed_max_np,
@@ -436,6 +437,25 @@ def test_pad_waypoints_layout():
     np.testing.assert_array_equal(tp2, t)
     with pytest.raises(LarcInputError):
         pad_waypoints(t, q, v, 3)
+
+
+def test_pad_waypoints_batch_is_pad_waypoints_stacked():
+    """Each row is pad_waypoints of its trajectory bit for bit (times, positions, velocities),
+    the rows after the trajectories repeat row 0, and too few knots is refused naming the trajectory."""
+    rng = np.random.default_rng(19)
+    trajs = [random_traj(rng, K, 3) for K in (1, 2, 5, 17, 30, 31)]
+    trajs[2] = (trajs[2][0] + 1.7e9, *trajs[2][1:])  # large times: the padding knots are still increasing
+    t, q, v = pad_waypoints_batch(trajs, 32, 8)
+    assert t.shape == (8, 32) and q.shape == v.shape == (8, 32, 3) and t.dtype == q.dtype == np.float64
+    for k, tr in enumerate(trajs):
+        for got, want in zip((t[k], q[k], v[k]), pad_waypoints(*tr, 32)):
+            np.testing.assert_array_equal(got, want)
+    for k in (6, 7):
+        np.testing.assert_array_equal(t[k], t[0])
+        np.testing.assert_array_equal(q[k], q[0])
+        np.testing.assert_array_equal(v[k], v[0])
+    with pytest.raises(LarcInputError, match="trajectory 5"):
+        pad_waypoints_batch(trajs, 31, 8)
 
 
 @pytest.mark.slow

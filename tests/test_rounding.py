@@ -18,8 +18,8 @@ from larc_jax import Scene, Trajectory, certify
 from larc_jax.enclosure import capsule_segments, capsule_segments_np
 from larc_jax.obstacles.geometry import segment_box_distance
 from larc_jax.model.hermite import HermiteSpline, evaluate, speed_max
-from larc_jax.leaf.interval import (K_DIST_ABS, K_DIST_REL, K_FK, K_POS, K_SPEED, K_TIME, rebase_ends, time_offset,
-                               trajectory_rounding)
+from larc_jax.leaf.interval import (K_DIST_ABS, K_DIST_REL, K_FK, K_POS, K_SPEED, K_TIME, ROUNDING_CHUNK, rebase_ends,
+                                   time_offset, trajectory_rounding, trajectory_roundings)
 from larc_jax.model.robot import JointType
 
 from .exact import (accel_max_exact, hermite_exact, leaf_min_clearance, min_clearance, segment_box_sq_distance_exact,
@@ -98,6 +98,38 @@ def test_time_offset_and_rebase_are_exact():
             assert xr >= t[0] - o and yr <= t[-1] - o
     assert time_offset(np.array([0.1, 10.3])) == 0.0  # 10.3 - 0.1 is not exact: times used as given
     assert time_offset(np.array([2.1e9, 2.1e9 + 5.0])) == 2.1e9  # Sterbenz
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_roundings_together_are_each_alone(robot, capsules, dtype):
+    """trajectory_roundings of trajectories of many lengths (more than one chunk, padded to the
+    longest in each) gives each one's trajectory_rounding, alone, bit for bit; the offset is
+    time_offset's and the horizon the rebased first and last knots."""
+    rng = np.random.default_rng(23)
+    n = len(robot.active_joint_names)
+    trajs = []
+    for k in range(2 * ROUNDING_CHUNK + 3):
+        m = int(rng.integers(2, 40))
+        t = np.cumsum(rng.uniform(0.01, 1.0, m)) + [0.0, 1.7e9 + 0.125, -3.3, 1e-9, 2.0**40][k % 5]
+        q = rng.normal(size=(m, n)) * 10.0 ** rng.uniform(-3, 1)
+        qd = rng.normal(size=(m, n)) * 10.0 ** rng.uniform(-3, 2)
+        trajs.append(Trajectory(t=t, q=q, qd=qd, joint_names=robot.active_joint_names, id=f"r{k}"))
+    together = trajectory_roundings(trajs, robot, capsules, dtype)
+    assert len(together) == len(trajs)
+    for traj, got in zip(trajs, together):
+        want = trajectory_rounding(traj, robot, capsules, dtype)
+        for field in ("offset_s", "t_start", "t_end", "tau_s", "omega_slack", "accel_slack", "guard_m",
+                      "hull_guard_m"):
+            a, b = np.asarray(getattr(got, field)), np.asarray(getattr(want, field))
+            assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b), (traj.id, field)
+        o = time_offset(traj.t)
+        assert float(got.offset_s) == o and float(got.t_start) == traj.t[0] - o and float(got.t_end) == traj.t[-1] - o
+    # The speed slack of a trajectory alone, from its own formula (P2): the padding masked out.
+    traj = trajs[0]
+    h = np.diff(traj.t - float(together[0].offset_s))[:, None]
+    v = np.abs(traj.qd)
+    V = (v[:-1] + v[1:] + 1.5 * (np.abs(np.diff(traj.q, axis=0)) / h)).max(axis=0)
+    np.testing.assert_array_equal(together[0].omega_slack, K_SPEED * U64 * V)
 
 
 def test_evaluation_time_error_is_within_tau(robot, capsules):

@@ -47,6 +47,41 @@ def test_ragged_table_is_the_sparse_table_definition():
     assert (seen[:total] == 1).all() and not seen[total:].any() and not rows[total:].any()
 
 
+def test_padding_trajectories_get_no_rows():
+    """A trajectory with no segments (a batch's padding) has no block; the others' blocks are
+    those of the table without it, in the same order, whichever trajectory has the most levels."""
+    rng = np.random.default_rng(13)
+    Ks = np.array([9, 0, 40, 1, 0, 17, 0])
+    level0 = rng.normal(size=(len(Ks), 45, 3))
+    real = Ks > 0
+    total = sum(num_table_levels(k) * k for k in Ks[real])
+    rows, start = ragged_table(level0, Ks, total + 3)
+    want_rows, want_start = ragged_table(level0[real], Ks[real], total + 3)
+    np.testing.assert_array_equal(rows, want_rows)
+    np.testing.assert_array_equal(start[real], want_start)
+    empty, _ = ragged_table(level0, np.zeros(len(Ks), int), 16)
+    assert not empty.any()
+
+
+def test_chunk_plan_covers_every_item_once_with_little_padding():
+    """Chunks run in order over 0..n, each in a bucket size at least its length; padding is at most
+    SPLIT_WASTE items per plan once the rest falls below the largest bucket, or that of the smallest
+    bucket holding a rest shorter than SPLIT_MIN."""
+    from larc_jax.engine.batch import BUCKETS, CULLED_BUCKETS
+    from larc_jax.engine.chunks import SPLIT_MIN, SPLIT_WASTE, chunk_plan
+
+    for buckets in (BUCKETS, CULLED_BUCKETS):
+        for n in [1, 3, 4, 5, 100, 160, 255, 256, 257, 300, 2560, 4000, 4096, 5000, 9000, 81920, 123457]:
+            plan = chunk_plan(n, buckets)
+            assert plan[0][0] == 0 and plan[-1][1] == n
+            assert all(p[1] == q[0] for p, q in zip(plan, plan[1:]))
+            assert all(size in buckets and stop - start <= size for start, stop, size in plan)
+            assert all(stop - start == size for start, stop, size in plan[:-1])  # only the last is padded
+            start, stop, size = plan[-1]
+            small = next(b for b in buckets if b >= min(stop - start, SPLIT_MIN))
+            assert size - (stop - start) <= max(SPLIT_WASTE, small - (stop - start)), (n, plan)
+
+
 def test_rows_are_the_padded_tables_where_queries_read_them():
     """Every entry a query can read (level l, index i with i + 2**l - 1 <= K_k - 1) is the padded
     HermiteSpline table's, bit for bit, for speeds and accelerations, in far fewer rows."""

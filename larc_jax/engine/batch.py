@@ -38,7 +38,8 @@ from ..leaf.interval import RoundingBounds, dyadic_ends, rebase_ends
 from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
 from ..leaf.self_collision import SelfPairs
 from ..leaf.swept import SweptPlacement, SweptTables, swept_links, swept_record
-from ..model.hermite import pad_waypoints
+from ..model.hermite import pad_waypoints_batch
+from .chunks import chunk_plan
 from ..model.robot import Robot
 from ..model.scene import Scene
 from ..model.spline_batch import SplineBatch, spline_batch
@@ -51,9 +52,10 @@ from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_inter
 __all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
 
 BUCKETS = tuple(2**k for k in range(2, 13))
-"""Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11 shapes;
-larger frontiers run in 4096-chunks): small ones matter one trajectory per call, where a call
-costs ~0.1 ms plus ~10 us per padded interval on a CPU core."""
+"""Frontier arrays are padded to the next of these sizes, 4 .. 4096 (11 shapes; larger frontiers
+run in 4096-chunks and whole smaller buckets, :func:`~larc_jax.engine.chunks.chunk_plan`): small
+ones matter one trajectory per call, where a call costs ~0.1 ms plus ~10 us per padded interval
+on a CPU core."""
 
 
 MAX_BATCH_TRAJECTORIES = 1024
@@ -184,9 +186,7 @@ class Batch:
         n = len(items[0])
         parts = []
         buckets = tuple(s for s in buckets if s <= self.max_chunk(width)) or buckets[:1]  # memory: PAIR_BYTES
-        for start in range(0, n, buckets[-1]):
-            stop = min(n, start + buckets[-1])
-            size = next(s for s in buckets if s >= stop - start)
+        for start, stop, size in chunk_plan(n, buckets):
             size = -(-size // max(1, len(self.devices))) * max(1, len(self.devices))  # whole shards
             pad = size - (stop - start)
             chunk = [np.concatenate([x[start:stop], np.repeat(x[start:start + 1], pad, axis=0)]) for x in items]
@@ -458,11 +458,12 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     dtype = np.dtype(dtype)
     # Shapes are rounded up to size classes (see size_class); padded knots lie after t_K and
     # are never touched by an interval inside the horizon (hermite.pad_waypoints), padded
-    # trajectories and scenes repeat the first one and are never indexed by an interval.
+    # trajectories (the first one's knots, no table rows) and scenes repeat the first one and are
+    # never indexed by an interval.
     n_knots = size_class(max(t.n_waypoints for t in trajectories), 16)
-    padded = [pad_waypoints(t.t - float(bd.offset_s), t.q, t.qd, n_knots) for t, bd in zip(trajectories, bounds)]
-    n_pad = size_class(len(padded), 1) - len(padded)
-    padded += padded[:1] * n_pad
+    n_pad = size_class(len(trajectories), 1) - len(trajectories)
+    padded = pad_waypoints_batch([(t.t - float(bd.offset_s), t.q, t.qd) for t, bd in zip(trajectories, bounds)],
+                                 n_knots, len(trajectories) + n_pad)
     stacked = jax.tree.map(lambda *x: np.stack(x), *(list(bounds) + list(bounds[:1]) * n_pad))
     unique = list(dict.fromkeys(id(s) for s in scenes))
     scene_list = [next(s for s in scenes if id(s) == u) for u in unique]
@@ -471,8 +472,7 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     cull = worth_culling(scene_list)
     # A culled batch gives every scene a masked last item: what a culled interval's list is padded with.
     obstacles = stack_scenes(scene_list, dtype, max(s.n_obstacles for s in scene_list) + 1 if cull else None)
-    splines = spline_batch(*(np.stack([p[i] for p in padded]).astype(np.float64) for i in range(3)),
-                           n_knots=np.array([t.n_waypoints for t in trajectories] + [trajectories[0].n_waypoints] * n_pad),
+    splines = spline_batch(*padded, n_knots=np.array([t.n_waypoints for t in trajectories] + [0] * n_pad),
                            accel=swept is not None,  # the swept stage reads accelerations
                            call=lambda fn, args: tracked_call(fn, args, on_compile))
     robot_g, capsules_g = _geometry(robot, capsules, dtype)

@@ -265,12 +265,19 @@ def _guard_terms(robot: Robot, link_index, end_norms, motion_a):
 
 def _guards(terms, E, Q, ug: float) -> np.ndarray:
     """``G_e`` of the module docstring for enclosures with :func:`_guard_terms` ``terms`` (per-joint
-    position error ``E``, curve bound ``Q``, geometry roundoff ``ug``)."""
+    position error ``E``, curve bound ``Q``, geometry roundoff ``ug``); ``E`` and ``Q`` (..., n),
+    the result (..., C): each trajectory's guards, the same arithmetic whatever the leading axes."""
     u = _U64
     a, lengths, fixed, prismatic = terms
     with np.errstate(over="ignore", invalid="ignore"):
-        placed = np.where(a > 0, a * E, 0.0).sum(axis=1)  # sum_j a_lj E_j (a_lj = 0: no effect)
-        reach = fixed + np.array([sum(float(Q[j]) for j in js) for js in prismatic])
+        placed = np.where(a > 0, a * E[..., None, :], 0.0).sum(axis=-1)  # sum_j a_lj E_j (a_lj = 0: no effect)
+        travel = []
+        for js in prismatic:  # sum_j Q_j over the active prismatic joints of the chain, in order
+            acc = np.zeros(Q.shape[:-1])
+            for j in js:
+                acc = acc + Q[..., j]
+            travel.append(acc)
+        reach = fixed + (np.stack(travel, axis=-1) if travel else np.zeros(Q.shape[:-1] + (0,)))
         return (1 + 8 * u) * (placed + (K_FK * (lengths + 1) + 2 * K_DIST_ABS) * ug * reach)
 
 
@@ -291,34 +298,51 @@ def trajectory_roundings(trajs, robot: Robot, capsules: CapsuleModel, dtype=np.f
     if hulls is not None:
         v_max = np.linalg.norm(np.asarray(hulls.vertices, np.float64), axis=-1).max(axis=1)
         hull_terms = _guard_terms(robot, hulls.link_index, v_max, hulls.motion_a)
-    return [_rounding(traj, capsule_terms, hull_terms, dtype) for traj in trajs]
+    return [b for lo in range(0, len(trajs), ROUNDING_CHUNK)
+            for b in _roundings(trajs[lo:lo + ROUNDING_CHUNK], capsule_terms, hull_terms, dtype)]
 
 
-def _rounding(traj, capsule_terms, hull_terms, dtype) -> RoundingBounds:
-    """:func:`trajectory_rounding` of one trajectory, given the model's :func:`_guard_terms`."""
+ROUNDING_CHUNK = 16
+"""Trajectories whose bounds :func:`trajectory_roundings` computes together."""
+
+
+def _roundings(trajs, capsule_terms, hull_terms, dtype) -> list[RoundingBounds]:
+    """:func:`trajectory_roundings` given the model's :func:`_guard_terms`: every trajectory at once,
+    padded to the longest with its last knot repeated and the padding masked out of the maxima
+    (each element is computed as for the trajectory alone, and a maximum has no rounding)."""
     ug = float(np.finfo(geometry_dtype(dtype)).eps) / 2
     u = _U64
-    t = np.asarray(traj.t, np.float64)
-    q = np.asarray(traj.q, np.float64)
-    v = np.abs(np.asarray(traj.qd, np.float64))
-    offset = time_offset(t)
-    tr = t - offset  # exact (T1)
-    H = np.diff(tr)[:, None]
-    t_mag = max(abs(float(tr[0])), abs(float(tr[-1])))
-    with np.errstate(over="ignore", invalid="ignore"):
-        Q = (np.abs(q[:-1]) + np.abs(q[1:]) + H * (v[:-1] + v[1:])).max(axis=0)  # P1
-        d = np.abs(np.diff(q, axis=0)) / H
-        V = (v[:-1] + v[1:] + 1.5 * d).max(axis=0)  # P2
-        A = ((4 * v[:-1] + 4 * v[1:] + 6 * d) / H).max(axis=0)  # P2'
+    n_knots = np.array([len(tr.t) for tr in trajs])
+    B, N, n = len(trajs), int(n_knots.max()), np.shape(trajs[0].q)[1]
+    t, q, v = np.empty((B, N)), np.empty((B, N, n)), np.empty((B, N, n))
+    for k, tr in enumerate(trajs):
+        m = len(tr.t)
+        t[k, :m], t[k, m:] = tr.t, tr.t[-1]
+        q[k, :m], q[k, m:] = tr.q, tr.q[-1]
+        v[k, :m], v[k, m:] = np.abs(tr.qd), np.abs(tr.qd[-1])
+    _, err = _two_diff(t, t[:, :1])
+    offset = np.where(np.all(err == 0.0, axis=1), t[:, 0], 0.0)  # time_offset of each (T1)
+    tr = t - offset[:, None]  # exact (T1)
+    rows = np.arange(B)
+    t_mag = np.maximum(np.abs(tr[:, 0]), np.abs(tr[rows, n_knots - 1]))
+    real = (np.arange(N - 1) < (n_knots - 1)[:, None])[..., None]  # (B, N-1, 1): a real segment
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        H = np.diff(tr, axis=1)[..., None]
+        seg_max = lambda x: np.max(x, axis=1, where=real, initial=-np.inf)  # noqa: E731 - over real segments
+        v_sum = v[:, :-1] + v[:, 1:]
+        Q = seg_max(np.abs(q[:, :-1]) + np.abs(q[:, 1:]) + H * v_sum)  # P1
+        d = np.abs(np.diff(q, axis=1)) / H
+        V = seg_max(v_sum + 1.5 * d)  # P2
+        A = seg_max((4 * v[:, :-1] + 4 * v[:, 1:] + 6 * d) / H)  # P2'
         E = K_POS * u * Q + (2.0 * ug * Q if ug > u else 0.0)
     guard = _guards(capsule_terms, E, Q, ug)
-    hull_guard = np.zeros(0) if hull_terms is None else _guards(hull_terms, E, Q, ug)
-    return RoundingBounds(
-        offset_s=np.float64(offset), t_start=np.float64(tr[0]), t_end=np.float64(tr[-1]),
-        tau_s=np.float64(K_TIME * u * t_mag), omega_slack=K_SPEED * u * V, accel_slack=K_SPEED * u * A,
-        guard_m=guard,
-        hull_guard_m=hull_guard,
-    )
+    hull_guard = np.zeros((B, 0)) if hull_terms is None else _guards(hull_terms, E, Q, ug)
+    tau = K_TIME * u * t_mag
+    return [RoundingBounds(
+        offset_s=np.float64(offset[k]), t_start=np.float64(tr[k, 0]), t_end=np.float64(tr[k, n_knots[k] - 1]),
+        tau_s=np.float64(tau[k]), omega_slack=K_SPEED * u * V[k], accel_slack=K_SPEED * u * A[k],
+        guard_m=guard[k], hull_guard_m=hull_guard[k],
+    ) for k in range(B)]
 
 
 # ----------------------------------------------------------------------------------------------

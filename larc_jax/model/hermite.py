@@ -78,6 +78,7 @@ __all__ = [
     "HermiteSpline",
     "num_table_levels",
     "pad_waypoints",
+    "pad_waypoints_batch",
     "batch_from_waypoints",
     "evaluate",
     "segment_speed_max",
@@ -295,6 +296,35 @@ def pad_waypoints(t, q, qd, n_knots: int):
     t_out = np.concatenate([t, t_pad])
     q_out = np.concatenate([q, np.repeat(q[-1:], m, axis=0)], axis=0)
     qd_out = np.concatenate([qd, np.zeros((m, qd.shape[1]), dtype=qd.dtype)], axis=0)
+    return t_out, q_out, qd_out
+
+
+def pad_waypoints_batch(trajectories, n_knots: int, n_batch: int):
+    """``(t (B, N), q (B, N, n), qd (B, N, n))`` float64, ``B = n_batch``, ``N = n_knots``: row
+    ``k < len(trajectories)`` is :func:`pad_waypoints` of ``trajectories[k] = (t, q, qd)`` (the
+    same elementwise arithmetic, so bit for bit), the rows after it repeat row 0 (a batch's
+    padding). One pass over the trajectories, without :func:`pad_waypoints`' per-call copies."""
+    n = np.shape(trajectories[0][1])[1]
+    t_out = np.empty((n_batch, n_knots), np.float64)
+    q_out = np.empty((n_batch, n_knots, n), np.float64)
+    qd_out = np.zeros((n_batch, n_knots, n), np.float64)
+    steps = np.arange(1, n_knots + 1, dtype=np.float64)
+    for k, (t, q, qd) in enumerate(trajectories):
+        m = n_knots - len(t)
+        if m < 0 or np.shape(q) != (len(t), n) or np.shape(qd) != (len(t), n):
+            raise LarcInputError(f"hermite: cannot pad trajectory {k} ({len(t)} knots, q {np.shape(q)}, qd "
+                                 f"{np.shape(qd)}) to n_knots={n_knots} with {n} joints")
+        t_out[k, :len(t)] = t
+        t_out[k, len(t):] = t[-1] + steps[:m]
+        q_out[k, :len(t)] = q
+        q_out[k, len(t):] = q[-1]
+        qd_out[k, :len(t)] = qd
+    t_out[len(trajectories):] = t_out[0]
+    q_out[len(trajectories):] = q_out[0]
+    qd_out[len(trajectories):] = qd_out[0]
+    if not np.all(np.diff(t_out, axis=1) > 0):  # times strictly increasing, padding knots too
+        k = int(np.flatnonzero(~np.all(np.diff(t_out, axis=1) > 0, axis=1))[0])
+        raise LarcInputError(f"hermite: padding times after t_K of trajectory {k} are not increasing in float64")
     return t_out, q_out, qd_out
 
 

@@ -67,25 +67,30 @@ class SplineBatch:
 def ragged_table(level0: np.ndarray, n_segments: np.ndarray, n_rows: int) -> tuple[np.ndarray, np.ndarray]:
     """``(rows (n_rows, n), start (B,))``: the sparse tables of trajectories whose level 0 is
     ``level0[k, :n_segments[k]]`` (``level0`` (B, N-1, n), NumPy), one block of
-    ``num_table_levels(K_k) * K_k`` rows each (module docstring), padded with zeros to ``n_rows``."""
+    ``num_table_levels(K_k) * K_k`` rows each (module docstring), padded with zeros to ``n_rows``.
+    A trajectory with ``n_segments[k] == 0`` (a batch's padding, never queried) has no block."""
     B, _, n = level0.shape
-    K = np.asarray(n_segments, np.int64)
-    levels = np.array([num_table_levels(k) for k in K], np.int64)
-    sizes = levels * K
-    start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    K = np.maximum(np.asarray(n_segments, np.int64), 0)
+    levels = np.array([num_table_levels(k) if k else 0 for k in K], np.int64)
+    start = np.concatenate([[0], np.cumsum(levels * K)[:-1]]).astype(np.int64)
     rows = np.zeros((n_rows, n), level0.dtype)
-    flat = np.concatenate([level0[k, :K[k]] for k in range(B)])  # level 0 of all, one after another
-    first = np.repeat(np.concatenate([[0], np.cumsum(K)[:-1]]), K)  # each segment's trajectory's first
-    last = np.repeat(np.cumsum(K) - 1, K)  # ... and last segment, in ``flat``
-    pos = np.arange(len(flat)) - first  # the segment's index i within its trajectory
-    owner = np.repeat(np.arange(B), K)
+    if not K.any():
+        return rows, start
+    # Trajectories with more levels first, so those still building level lv are a prefix of ``flat``.
+    order = np.argsort(-levels, kind="stable")
+    K_o = K[order]
+    flat = np.concatenate([level0[k, :K[k]] for k in order if K[k]])  # level 0 of all, one after another
+    seg = np.arange(len(flat))
+    last = np.repeat(np.cumsum(K_o) - 1, K_o)  # each segment's trajectory's last segment, in ``flat``
+    dest = np.repeat(start[order], K_o) + seg - np.repeat(np.cumsum(K_o) - K_o, K_o)  # row of (level 0, i)
+    stride = np.repeat(K_o, K_o)
     level = flat
     for lv in range(int(levels.max())):
+        m = int(K[levels > lv].sum())  # the prefix of segments whose trajectory has a level lv
         if lv:
             half = 1 << (lv - 1)  # level lv at i: max(level lv-1 at i, at min(i + half, K - 1))
-            level = np.maximum(level, level[np.minimum(np.arange(len(flat)) + half, last)])
-        keep = lv < levels[owner]
-        rows[(start[owner] + lv * K[owner] + pos)[keep]] = level[keep]
+            level = np.maximum(level[:m], level[np.minimum(seg[:m] + half, last[:m])])
+        rows[dest[:m] + lv * stride[:m]] = level
     return rows, start
 
 
@@ -108,14 +113,15 @@ def _level0_accel(t, q, qd):
 
 def spline_batch(t, q, qd, n_knots: np.ndarray, accel: bool, call=None) -> SplineBatch:
     """A :class:`SplineBatch` on the default device from padded knots ``t`` (B, N), ``q``, ``qd``
-    (B, N, n) (float64, NumPy) of trajectories with ``n_knots`` (B,) real knots each; ``accel``:
+    (B, N, n) (float64, NumPy) of trajectories with ``n_knots`` (B,) real knots each (0: a
+    padding trajectory, never queried, given no table rows); ``accel``:
     also the acceleration tables. ``call(fn, args)``: how to run the jitted level-0 kernel
     (default: call it; e.g. :func:`~larc_jax.compilation.tracked_call` to report compiling)."""
     fn = _level0_accel if accel else _level0_speed
     with jax.enable_x64(True):
         level0 = [np.asarray(x) for x in (fn(t, q, qd) if call is None else call(fn, (t, q, qd)))]
-    K = np.asarray(n_knots, np.int64) - 1
-    n_rows = int(sum(num_table_levels(k) * k for k in K))
+    K = np.maximum(np.asarray(n_knots, np.int64) - 1, 0)
+    n_rows = int(sum(num_table_levels(k) * k for k in K if k))
     if len(K) == 1:  # one trajectory (certified one per call): a shape of its knot count alone
         n_rows = num_table_levels(t.shape[1] - 1) * (t.shape[1] - 1)
     n_rows = 1 << max(4, (n_rows - 1).bit_length())  # a few shapes: the next power of two
