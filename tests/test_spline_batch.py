@@ -63,25 +63,6 @@ def test_padding_trajectories_get_no_rows():
     assert not empty.any()
 
 
-def test_chunk_plan_covers_every_item_once_with_little_padding():
-    """Chunks run in order over 0..n, each in a bucket size at least its length; padding is at most
-    SPLIT_WASTE items per plan once the rest falls below the largest bucket, or that of the smallest
-    bucket holding a rest shorter than SPLIT_MIN."""
-    from larc_jax.engine.batch import BUCKETS, CULLED_BUCKETS
-    from larc_jax.engine.chunks import SPLIT_MIN, SPLIT_WASTE, chunk_plan
-
-    for buckets in (BUCKETS, CULLED_BUCKETS):
-        for n in [1, 3, 4, 5, 100, 160, 255, 256, 257, 300, 2560, 4000, 4096, 5000, 9000, 81920, 123457]:
-            plan = chunk_plan(n, buckets)
-            assert plan[0][0] == 0 and plan[-1][1] == n
-            assert all(p[1] == q[0] for p, q in zip(plan, plan[1:]))
-            assert all(size in buckets and stop - start <= size for start, stop, size in plan)
-            assert all(stop - start == size for start, stop, size in plan[:-1])  # only the last is padded
-            start, stop, size = plan[-1]
-            small = next(b for b in buckets if b >= min(stop - start, SPLIT_MIN))
-            assert size - (stop - start) <= max(SPLIT_WASTE, small - (stop - start)), (n, plan)
-
-
 def test_rows_are_the_padded_tables_where_queries_read_them():
     """Every entry a query can read (level l, index i with i + 2**l - 1 <= K_k - 1) is the padded
     HermiteSpline table's, bit for bit, for speeds and accelerations, in far fewer rows."""
