@@ -195,7 +195,8 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
     """XLA cost analysis of the interval kernel on one full bucket of Stage B intervals."""
     import jax
 
-    from larc_jax.engine.batch import BUCKETS, prepare
+    from larc_jax.engine.batch import prepare
+    from larc_jax.engine.buckets import BUCKETS
     from larc_jax.engine.certify import _check_inputs  # noqa: PLC2701 - the benchmark measures internals
     from larc_jax.engine.kernels import evaluate_intervals, evaluate_intervals_broad
     from larc_jax.leaf.interval import trajectory_rounding

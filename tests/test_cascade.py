@@ -413,6 +413,50 @@ def test_screen_matches_reference(dataset, model):
     assert seen[-3] > 4 and seen[-2] < 0 and seen[-1] == np.inf
 
 
+def test_screen_from_step_one_is_the_screen(dataset, model):
+    """:func:`screened_interval` (step 1 and the screen from one placement, only the recorded
+    link's parts bounded) gives the capsule test's record and the screen's value on the pair it
+    records: against :func:`evaluate_interval` and :func:`link_upper_excess` (each placing the
+    interval itself), and the NumPy float64 reference, on random intervals (passing and failing,
+    broad phase and all pairs) and a zero-width one; ``part_table`` lists each link's parts."""
+    from larc_jax.leaf.cascade import link_upper_excess, link_upper_excess_np, screened_interval
+    from larc_jax.leaf.clearance import BROAD_PHASE_K
+    from larc_jax.leaf.interval import evaluate_interval
+
+    robot, capsules, hulls = model
+    trajs, scenes = dataset
+    links = Links.of(capsules, hulls)
+    table = links.part_table()
+    for l in range(links.n_links):
+        row = table[l][table[l] >= 0]
+        np.testing.assert_array_equal(row, np.flatnonzero(links.of_part == l))
+        assert (table[l][len(row):] == -1).all()
+    link_of = (links.of_capsule, table)
+    rng = np.random.default_rng(8)
+    cases = [(k % len(trajs), *np.sort(rng.uniform(trajs[k % len(trajs)].t[0], trajs[k % len(trajs)].t[-1], 2)))
+             for k in range(12)] + [(0, trajs[0].t[1], trajs[0].t[1])]
+    failing = 0
+    for n, (k, a, b) in enumerate(cases):
+        traj = trajs[k]
+        bounds = trajectory_rounding(traj, robot, capsules, np.float64, hulls)
+        ar, br = rebase_ends(a, b, float(bounds.offset_s))
+        kb = BROAD_PHASE_K if n % 2 else None
+        with jax.enable_x64(True):
+            spline = HermiteSpline.from_waypoints(traj.t - float(bounds.offset_s), traj.q, traj.qd)
+            obstacles = stack_scenes([scenes[k]], np.float64).take((0,))
+            ev, excess = screened_interval(robot, capsules, hulls, link_of, spline, obstacles, ar, br, MARGIN, bounds, kb)
+            want = evaluate_interval(robot, capsules, spline, obstacles, ar, br, MARGIN, bounds, kb)
+            assert (int(ev.capsule), int(ev.box)) == (int(want.capsule), int(want.box))
+            assert abs(float(ev.g) - float(want.g)) <= 1e-12 and float(ev.guard) == float(want.guard)
+            on_link = links.of_part == links.of_capsule[int(ev.capsule)]
+            alone = float(link_upper_excess(robot, capsules, hulls, spline, obstacles.take(int(ev.box)), ar, br, MARGIN,
+                                            bounds, on_link))
+        ref = link_upper_excess_np(robot, capsules, hulls, traj, scenes[k], a, b, MARGIN, bounds, int(ev.box), on_link)
+        assert abs(float(excess) - alone) <= 1e-12 and abs(float(excess) - ref) <= 1e-12, (k, a, b)
+        failing += not float(ev.g) > float(ev.guard)
+    assert 0 < failing < len(cases)
+
+
 def _spied_screen(monkeypatch):
     """Record what :meth:`Batch._hopeless` returns (a list of bool arrays)."""
     import larc_jax.engine.batch as batch_module

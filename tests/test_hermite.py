@@ -456,6 +456,14 @@ def test_pad_waypoints_batch_is_pad_waypoints_stacked():
         np.testing.assert_array_equal(v[k], v[0])
     with pytest.raises(LarcInputError, match="trajectory 5"):
         pad_waypoints_batch(trajs, 31, 8)
+    # Times that do not rise are blamed on the knots that do not, not on the padding.
+    bad = (trajs[3][0].copy(), *trajs[3][1:])
+    bad[0][4] = bad[0][3]
+    with pytest.raises(LarcInputError, match=r"t\[3\], t\[4\] of trajectory 1 are not increasing"):
+        pad_waypoints_batch([trajs[0], bad], 32, 2)
+    huge = (2.0**53 + np.array([0.0, 2.0, 4.0]), *trajs[1][1:])  # t_K + 1 == t_K in float64: the padding's
+    with pytest.raises(LarcInputError, match="padding times after t_K of trajectory 0"):
+        pad_waypoints_batch([huge], 32, 1)
 
 
 @pytest.mark.slow

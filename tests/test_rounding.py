@@ -19,7 +19,8 @@ from larc_jax.enclosure import capsule_segments, capsule_segments_np
 from larc_jax.obstacles.geometry import segment_box_distance
 from larc_jax.model.hermite import HermiteSpline, evaluate, speed_max
 from larc_jax.leaf.interval import (K_DIST_ABS, K_DIST_REL, K_FK, K_POS, K_SPEED, K_TIME, ROUNDING_CHUNK, rebase_ends,
-                                   time_offset, trajectory_rounding, trajectory_roundings)
+                                   time_offset, time_offsets, trajectory_rounding, trajectory_roundings)
+from larc_jax.errors import LarcInputError
 from larc_jax.model.robot import JointType
 
 from .exact import (accel_max_exact, hermite_exact, leaf_min_clearance, min_clearance, segment_box_sq_distance_exact,
@@ -130,6 +131,25 @@ def test_roundings_together_are_each_alone(robot, capsules, dtype):
     v = np.abs(traj.qd)
     V = (v[:-1] + v[1:] + 1.5 * (np.abs(np.diff(traj.q, axis=0)) / h)).max(axis=0)
     np.testing.assert_array_equal(together[0].omega_slack, K_SPEED * U64 * V)
+
+
+def test_roundings_refuse_a_trajectory_without_a_segment(robot, capsules):
+    """A trajectory of one knot (only a duck-typed object gets one past validation) has no
+    segment: its maxima would be -inf and its guards negative, so it is refused, by index."""
+    n = len(robot.active_joint_names)
+    one = type("OneKnot", (), {"t": np.zeros(1), "q": np.zeros((1, n)), "qd": np.zeros((1, n))})()
+    two = Trajectory(t=np.array([0.0, 1.0]), q=np.zeros((2, n)), qd=np.zeros((2, n)),
+                     joint_names=robot.active_joint_names, id="two")
+    with pytest.raises(LarcInputError, match="trajectory 1 has 1 knot"):
+        trajectory_roundings([two, one], robot, capsules)
+
+
+def test_time_offsets_are_time_offset_row_by_row():
+    """The batch rule of the rebase offset (T1) is the one-trajectory rule on each row."""
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(1e-3, 1.0, (40, 9)), axis=1) + rng.choice([0.0, 0.1, 1.7e9 + 0.3, 2.0**52, -7.7], (40, 1))
+    np.testing.assert_array_equal(time_offsets(t), [time_offset(row) for row in t])
+    assert np.any(time_offsets(t) == 0.0) and np.any(time_offsets(t) != 0.0)
 
 
 def test_evaluation_time_error_is_within_tau(robot, capsules):

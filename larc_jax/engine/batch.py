@@ -6,7 +6,7 @@ each its own length: :mod:`larc_jax.model.spline_batch`), scenes stacked into on
 padded to a common item count (masked; :func:`~larc_jax.obstacles.stack_scenes`), per-trajectory
 horizons. :meth:`Batch.evaluate` runs the interval test on any list of (trajectory, depth,
 index) intervals in jitted, vmapped calls (:mod:`larc_jax.engine.kernels`) padded to a few
-bucket sizes, so a process compiles a handful of shapes, not one per frontier size. A scene of
+bucket sizes (:mod:`larc_jax.engine.buckets`), so a process compiles a handful of shapes, not one per frontier size. A scene of
 many mesh or cloud pieces is culled per subtree of intervals (:mod:`larc_jax.engine.cull`): each
 interval then meets the items its subtree kept, in lists of a few widths.
 
@@ -43,55 +43,13 @@ from ..model.robot import Robot
 from ..model.scene import Scene
 from ..model.spline_batch import SplineBatch, spline_batch
 from ..obstacles import ObstacleSet, stack_scenes
+from .buckets import BUCKETS, CALL_BYTES, CASCADE_BUCKETS, CULLED_BUCKETS, PAIR_BUCKETS, PAIR_BYTES, size_class
 from .cull import CULL_DEPTH, WIDTHS, Cull, CullPart, build_cull, worth_culling
-from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_intervals_broad, hull_first_axis, hull_pairs,
-                      hull_points, hull_screen, item_margins, self_intervals, swept_capsules, swept_intervals,
-                      swept_parts)
+from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_intervals_broad, evaluate_intervals_screened,
+                      evaluate_intervals_screened_broad, hull_first_axis, hull_pairs, hull_points, hull_screen,
+                      item_margins, self_intervals, swept_capsules, swept_intervals, swept_parts)
 
-__all__ = ["Batch", "prepare", "dyadic_ends", "size_class", "BUCKETS", "CASCADE_BUCKETS", "MAX_BATCH_TRAJECTORIES"]
-
-BUCKETS = tuple(2**k for k in range(2, 13))
-"""Frontier arrays are padded to the next of these sizes, 4 .. 4096 (at most 2x waste, 11 shapes;
-larger frontiers run in 4096-chunks): small ones matter one trajectory per call, where a call
-costs ~0.1 ms plus ~10 us per padded interval on a CPU core. (Cutting a level into whole buckets
-instead of padding it saved ~5 % of a warm whole-set call, but a fresh process then traces and
-loads more shapes: a 1,000-trajectory call took 29.5 s instead of 15.9 s; measured, not kept.)"""
-
-
-MAX_BATCH_TRAJECTORIES = 1024
-"""Trajectories :func:`~larc_jax.engine.certify.certify` prepares into one :class:`Batch` (larger
-datasets run batch after batch): bounds the padded spline and bound arrays, so memory does not
-grow with the dataset."""
-
-
-CASCADE_BUCKETS = (64, 256, 1024)
-"""Sizes of the cascade's later calls (larc_jax.leaf.cascade, the screen, steps 4 and the swept
-stage): few, as those kernels take seconds to compile; a small call padded to 64 costs a few ms,
-and a GJK pair ~30 us on a CPU core, so larger counts run in 1024-chunks rather than 4096."""
-
-
-PAIR_BUCKETS = (16, 32, 64, 128, 256, 512, 1024)
-"""Sizes of the cascade's step-2 calls (:func:`~larc_jax.leaf.cascade.interval_pairs`, ~1.2 s to
-compile each): a ladder of 2, as one trajectory's open frontier is a few dozen to a few hundred
-intervals (on Stage B one at a time, the median call held 119: 4.1 ms at 256, 2.6 ms at 128)."""
-
-
-CULLED_BUCKETS = (32, 128, 1024)
-"""Sizes of capsule-stage calls on culled item lists (:mod:`larc_jax.engine.cull`): each width compiles
-its own kernels, so a short ladder (a 32-call of a few items costs well under a millisecond)."""
-
-
-PAIR_BYTES = 512
-"""Device memory per capsule-obstacle pair per interval that the all-pairs kernel may hold (XLA
-keeps each pair's candidate points; measured ~380 bytes on the CPU), rounded up."""
-CALL_BYTES = 2**30
-"""Device memory one interval call may take for its pairs (:attr:`Batch.max_chunk`)."""
-
-
-def size_class(n: int, minimum: int) -> int:
-    """Next power of two >= max(n, minimum): sizes that vary between calls (waypoints, trajectories,
-    scenes) round up to these, so a process compiles a few shapes (each ~100 memory mappings)."""
-    return 1 << (max(int(n), int(minimum)) - 1).bit_length()
+__all__ = ["Batch", "prepare", "dyadic_ends"]
 
 
 def _geometry(robot: Robot, capsules: CapsuleModel, dtype):
@@ -229,8 +187,9 @@ class Batch:
         fails untested (``g`` NaN) above the deepest culled nodes (its children meet their own
         lists), below them when the capsules fail on a pair computed exactly (no recomputation, no
         later stage); it is bisected, and nothing is certified that a test did not prove. Without the
-        swept stage, one the hull stage surely fails (:func:`~larc_jax.leaf.cascade.link_upper_excess`)
-        keeps its capsule record: steps 2-4 of the cascade would not change its verdict."""
+        swept stage, one the hull stage surely fails (:func:`~larc_jax.leaf.cascade.link_upper_excess`,
+        computed in the capsule stage's kernel: :func:`~larc_jax.leaf.cascade.screened_interval`) keeps
+        its capsule record: steps 2-4 of the cascade would not change its verdict."""
         return self._leaf_test(traj, depth, index, on_chunk, on_compile, cascade=True, may_bisect=may_bisect)
 
     def selection(self, traj, depth, index) -> list[CullPart]:
@@ -271,15 +230,26 @@ class Batch:
             np.ones(len(traj), bool)
         g[untested] = np.nan
         test = np.flatnonzero(~untested) if width else np.zeros(0, np.int64)
+        # The screen (below; only a verdict needed: the hull stage alone decides it) comes from step
+        # 1's own placement, in an unculled batch (a culled one would compile it for every width).
+        screen_on = cascade and self.hulls is not None and self.swept is None and np.any(may_bisect)
+        screened = screen_on and self.cull is None
+        upper = np.full(len(traj), np.nan)  # the screen's excess where step 1 gave it (NaN: not given)
         if len(test):  # every interval (no untested one): the arrays as they are, not copies
             t = slice(None) if len(test) == len(traj) else test
-            g[t], guard[t], cap[t], box[t], exact[t] = self._over(
-                evaluate_intervals_broad if broad else evaluate_intervals, head, sel if len(test) == len(traj)
-                else _rows(sel, test), traj[t], ar[t], br[t], on_chunk, on_compile, buckets)
+            kernel = ((evaluate_intervals_screened_broad if broad else evaluate_intervals_screened) if screened
+                      else evaluate_intervals_broad if broad else evaluate_intervals)
+            links = Links.of(self.capsules, self.hulls) if screened else None
+            out = self._over(kernel, (*head, self.hulls, (links.of_capsule, links.part_table())) if screened else head,
+                             sel if len(test) == len(traj) else _rows(sel, test), traj[t], ar[t], br[t], on_chunk,
+                             on_compile, buckets)
+            g[t], guard[t], cap[t], box[t], exact[t] = out[:5]
+            upper[t] = out[5] if screened else np.nan
         if on_chunk and len(traj) > len(test):
             on_chunk(len(traj) - len(test))
         defer = may_bisect & ~(g > guard) if wide else np.zeros(len(traj), bool)
         redo = np.flatnonzero(~exact.astype(bool) & ~defer)
+        upper[redo] = np.nan  # its pick may change
         if len(redo):  # the broad phase could not prove its pick: every pair, exactly
             g[redo], guard[redo], cap[redo], box[redo], _ = self._over(
                 evaluate_intervals, head, _rows(sel, redo), traj[redo], ar[redo], br[redo], on_compile=on_compile,
@@ -295,11 +265,10 @@ class Batch:
             self_test = self_record(gs, gds, c1.astype(np.int64), c2.astype(np.int64))
         record = box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.CAPSULE)
         open_ = np.flatnonzero(needs_hull(record, self_test) & ~defer)
-        screen = open_[np.asarray(may_bisect)[open_]] if cascade and may_bisect is not None and self.hulls is not None \
-            and self.swept is None else open_[:0]  # only a verdict needed: the hull stage alone decides it
+        screen = open_[np.asarray(may_bisect)[open_]] if screen_on else open_[:0]
         if len(screen):
             open_ = np.setdiff1d(open_, screen[self._hopeless(traj[screen], ar[screen], br[screen], _rows(sel, screen),
-                                                              cap[screen], box[screen], on_compile)])
+                                                              cap[screen], box[screen], upper[screen], on_compile)])
         if cascade and len(open_) and (self.hulls is not None or self.swept is not None):
             later = self._later_stages if self.cull is None else self._narrowed_stages
             record = record.put(open_, later(traj[open_], a[open_], b[open_], _rows(sel, open_), on_compile))
@@ -390,15 +359,20 @@ class Batch:
                                              clear_parts)
         return box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.SWEPT)
 
-    def _hopeless(self, tr, ar, br, sel, cap, box, on_compile) -> np.ndarray:
+    def _hopeless(self, tr, ar, br, sel, cap, box, upper, on_compile) -> np.ndarray:
         """Where the hull stage surely fails intervals ``(tr, ar, br)`` (rebased) the capsules fail on
-        (capsule ``cap``, item ``box`` of ``sel``): :func:`~larc_jax.leaf.cascade.link_upper_excess`."""
-        links, (leaves, tree) = Links.of(self.capsules, self.hulls), self._items(sel, np.arange(len(tr)), box)
-        call = hull_screen if len(self.devices) > 1 else cached_kernel(hull_screen)
-        return ~(self.bucketed(lambda t, x, y, m, *it: tracked_call(call, (
-            self.robot, self.capsules, self.hulls, self.splines, self.bounds, t, x, y, jax.tree.unflatten(tree, it), m,
-            self.margin), on_compile), [tr, ar, br, links.of_part[None, :] == links.of_capsule[cap][:, None], *leaves],
-            buckets=CASCADE_BUCKETS, width=1) > 0)
+        (capsule ``cap``, item ``box`` of ``sel``): :func:`~larc_jax.leaf.cascade.link_upper_excess`, given
+        by step 1 as ``upper`` (:func:`~larc_jax.leaf.cascade.screened_interval`), computed here where NaN."""
+        ask = np.flatnonzero(np.isnan(upper))
+        if len(ask):
+            links, (leaves, tree) = Links.of(self.capsules, self.hulls), self._items(sel, ask, box[ask])
+            call = hull_screen if len(self.devices) > 1 else cached_kernel(hull_screen)
+            upper = upper.copy()
+            upper[ask] = self.bucketed(lambda t, x, y, m, *it: tracked_call(call, (
+                self.robot, self.capsules, self.hulls, self.splines, self.bounds, t, x, y, jax.tree.unflatten(tree, it),
+                m, self.margin), on_compile), [tr[ask], ar[ask], br[ask], links.of_part[None, :] ==
+                links.of_capsule[cap[ask]][:, None], *leaves], buckets=CASCADE_BUCKETS, width=1)
+        return ~(upper > 0)
 
     def _hull_round(self, kernel, d: PairDetails, sel, triples, on_compile) -> np.ndarray:
         """One round of step 4 (:data:`hull_first_axis`, :data:`hull_pairs`, :func:`hull_points`) on

@@ -28,7 +28,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .batch import MAX_BATCH_TRAJECTORIES, Batch, dyadic_ends, prepare
+from .batch import Batch, dyadic_ends, prepare
+from .buckets import MAX_BATCH_TRAJECTORIES
 from ..compilation import CompileClock
 from ..defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH, METHODS
 from ..enclosure.capsule import CapsuleModel

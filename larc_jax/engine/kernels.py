@@ -13,7 +13,8 @@ import dataclasses
 import functools
 
 from ..lazy_jax import jax, jnp
-from ..leaf.cascade import hull_pair_clearance, hull_points_clearance, interval_pairs, link_upper_excess
+from ..leaf.cascade import (hull_pair_clearance, hull_points_clearance, interval_pairs, link_upper_excess,
+                            screened_interval)
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import evaluate_interval
 from ..leaf.placement import place
@@ -22,7 +23,8 @@ from ..leaf.swept import swept_capsule_clearance, swept_part_clearance, swept_pl
 from ..model.spline_batch import SplineRow
 from ..obstacles.polytope import GJK_ITERATIONS
 
-__all__ = ["evaluate_intervals", "evaluate_intervals_broad", "item_margins", "batched_interval_pairs", "hull_screen", "hull_first_axis", "hull_pairs",
+__all__ = ["evaluate_intervals", "evaluate_intervals_broad", "evaluate_intervals_screened",
+           "evaluate_intervals_screened_broad", "item_margins", "batched_interval_pairs", "hull_screen", "hull_first_axis", "hull_pairs",
            "self_intervals", "swept_intervals", "swept_capsules", "swept_parts"]
 
 
@@ -65,6 +67,28 @@ def batched_interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, t
         return d.g_capsule, d.T_part, d.motion_b, d.g_upper
 
     return jax.vmap(one)(traj, sel, a, b)
+
+
+def screened_kernel(k: int | None):
+    """Step 1 of the cascade and the screen before step 2 on F intervals, as ``evaluate_intervals``
+    (``k``: its broad phase) with ``link_of`` (:func:`~larc_jax.leaf.cascade.screened_interval`):
+    its outputs and the screen's excess (F,). One jitted function per ``k``, each with its own name."""
+
+    def kernel(robot, capsules, hulls, link_of, splines, obstacles, bounds, traj, sel, a, b, margin):
+        def one(t, s, ai, bi):
+            bnd = jax.tree.map(lambda x: x[t], bounds)
+            ev, excess = screened_interval(robot, capsules, hulls, link_of, SplineRow(splines, t), obstacles.take(s),
+                                           ai, bi, margin, bnd, k)
+            return ev.g, ev.guard, ev.capsule, ev.box, ev.exact, excess
+
+        return jax.vmap(one)(traj, sel, a, b)
+
+    kernel.__name__ = kernel.__qualname__ = "evaluate_intervals_screened" + ("" if k is None else "_broad")
+    return jax.jit(kernel)
+
+
+evaluate_intervals_screened = screened_kernel(None)
+evaluate_intervals_screened_broad = screened_kernel(BROAD_PHASE_K)
 
 
 @jax.jit

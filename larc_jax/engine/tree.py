@@ -48,7 +48,7 @@ from ..defaults import DEFAULT_MAX_DEPTH, MAX_DEPTH_LIMIT
 from ..lazy_jax import jax, jnp
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.record import LeafRecord, Stage, box_record, compose, self_record
-from .batch import size_class
+from .buckets import size_class
 from .kernels import batched_intervals, self_intervals
 
 __all__ = ["supports", "run_tree", "tree_program", "TreeLeaves", "dyadic_ends_jnp", "rebase_ends_jnp", "WIDE_STEP",

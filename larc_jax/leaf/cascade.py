@@ -58,6 +58,13 @@ upper bounds for the one (link, box) pair the capsule stage failed on; if any of
 cannot pass, step 3 would not try that pair and step 5 would fail the interval, so steps 2-4 are
 skipped and the capsule record stands (on the Stage B set, 160 trajectories to depth 9, it spared
 13,251 of the 23,515 intervals that reached step 2, and cut step 4's triples from 18,168 to 9,793).
+In an unculled batch LARC computes the screen inside step 1's kernel (:func:`screened_interval`):
+from step 1's own placement and speed maxima, for the parts of the recorded link only (on the
+PIPER at most 2 of 11 parts), so a screened interval costs step 1 plus a few probes, not a second
+placement of every part (Stage B's warm whole-set cascade, best of 7 calls on 2 CPU cores: 0.60 s
+to 0.52 s, the leaves bit-identical). An interval whose recorded pair the broad phase could not
+prove (evaluated again on every pair), and a culled batch's intervals (one kernel per item-list
+width would compile it again), are screened by their own call (:func:`link_upper_excess`).
 
 :func:`combine` is step 5 (NumPy, shared by every scheduler); :func:`cascade_np` runs steps 1-5
 on one interval with the NumPy float64 references (:func:`interval_pairs_np`,
@@ -73,7 +80,7 @@ import numpy as np
 
 from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel
-from .interval import evaluate_interval, evaluate_interval_np, motion_radii
+from .interval import evaluate_interval, evaluate_interval_np, evaluate_placed, motion_radii
 from .placement import place
 from ..lazy_jax import jax, jnp, pytree_dataclass
 from ..obstacles import scene_obstacles
@@ -82,6 +89,7 @@ from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
 
 __all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
            "hull_pair_clearance_np", "hull_points_clearance", "link_upper_excess", "link_upper_excess_np",
+           "screened_interval",
            "polytope_clearance", "polytope_clearance_np", "Links", "select_pairs", "two_rounds", "point_round",
            "combine", "cascade_np"]
 
@@ -115,18 +123,20 @@ def interval_pairs(robot: Robot, capsules: CapsuleModel, hulls: HullModel, splin
     return PairDetails(g_capsule=ev.g_pairs, T_part=T, motion_b=motion_b, g_upper=g_upper)
 
 
-def _part_upper_bounds(robot: Robot, hulls: HullModel, pl, obstacles, margin):
+def _part_upper_bounds(robot: Robot, hulls: HullModel, pl, obstacles, margin, parts=None):
     """The parts' link poses (P, 3, 4), motion radii (P,) and hull clearance upper bounds (P, B)
     on an interval placed as ``pl`` (:class:`~larc_jax.leaf.placement.Placement` or the
-    :class:`~larc_jax.leaf.interval.IntervalEval` that holds one): step 2's, and the screen's."""
+    :class:`~larc_jax.leaf.interval.IntervalEval` that holds one): step 2's, and the screen's;
+    with ``parts`` (M,) indices, those parts' alone (each part's numbers computed alike)."""
     eps = float(jnp.finfo(pl.speed.dtype).eps)
     gdtype = robot.T_parent_joint.dtype
-    T = forward_kinematics(robot, pl.q_mid.astype(gdtype))[jnp.asarray(hulls.link_index)][:, :3, :]  # (P, 3, 4)
-    motion_b = motion_radii(hulls.motion_a, pl.h_cov, pl.speed)  # eq. 6, the parts' own a_pj
-    probes = jnp.einsum("pij,pqj->pqi", T[:, :, :3], hulls.probes.astype(gdtype)) + T[:, None, :, 3]
+    of = (lambda x: x) if parts is None else (lambda x: jnp.asarray(x)[parts])  # noqa: E731
+    T = forward_kinematics(robot, pl.q_mid.astype(gdtype))[of(jnp.asarray(hulls.link_index))][:, :3, :]  # (P, 3, 4)
+    motion_b = motion_radii(of(hulls.motion_a), pl.h_cov, pl.speed)  # eq. 6, the parts' own a_pj
+    probes = jnp.einsum("pij,pqj->pqi", T[:, :, :3], of(hulls.probes).astype(gdtype)) + T[:, None, :, 3]
     d = obstacles.point_distances(probes.reshape(-1, 3)).reshape(probes.shape[:2] + (-1,))  # (P, Q, B)
     # An upper bound, used only to skip pairs that cannot pass: no rounding care needed.
-    g_upper = d.min(axis=1).astype(motion_b.dtype) - _shell(hulls.radius, motion_b, margin, eps)[:, None]
+    g_upper = d.min(axis=1).astype(motion_b.dtype) - _shell(of(hulls.radius), motion_b, margin, eps)[:, None]
     return T, motion_b, jnp.where(obstacles.mask[None, :], g_upper, jnp.inf)
 
 
@@ -143,10 +153,31 @@ def link_upper_excess(robot: Robot, capsules: CapsuleModel, hulls: HullModel, sp
     hull stage whatever steps 2-4 compute elsewhere. LARC bisects such an interval above its
     deepest level without running them (:meth:`~larc_jax.engine.batch.Batch.evaluate_cascade`);
     it computes the same numbers as step 2 (one placement, :func:`_part_upper_bounds`)."""
-    pl = place(robot, capsules, spline, a, b, bounds)
+    return _placed_upper_excess(robot, hulls, place(robot, capsules, spline, a, b, bounds), item, margin, bounds,
+                                on_link)
+
+
+def _placed_upper_excess(robot: Robot, hulls: HullModel, pl, item, margin, bounds, on_link, parts=None) -> jax.Array:
+    """:func:`link_upper_excess` on an interval placed as ``pl`` (``on_link`` over ``parts`` if given)."""
     one = jax.tree.map(lambda x: x[None], item)  # a one-item set: step 2's code path
-    _, _, g_upper = _part_upper_bounds(robot, hulls, pl, one, margin)
-    return jnp.min(jnp.where(on_link, g_upper[:, 0] - bounds.hull_guard_m, jnp.inf))
+    _, _, g_upper = _part_upper_bounds(robot, hulls, pl, one, margin, parts)
+    guard = bounds.hull_guard_m if parts is None else bounds.hull_guard_m[parts]
+    return jnp.min(jnp.where(on_link, g_upper[:, 0] - guard, jnp.inf))
+
+
+def screened_interval(robot: Robot, capsules: CapsuleModel, hulls: HullModel, link_of, spline, obstacles, a, b,
+                      margin, bounds, k: int | None = None):
+    """Step 1 and the screen from one placement: ``(ev, excess)``, ``ev`` the capsule test of
+    :func:`~larc_jax.leaf.interval.evaluate_interval` (broad phase ``k``) and ``excess`` the
+    screen (:func:`link_upper_excess`) on the (link, item) pair ``ev`` records; ``link_of =
+    (Links.of_capsule, Links.part_table())``. Only read where the capsules fail. The placement
+    and the speed maxima are computed once for both, and only the recorded link's parts are
+    bounded (at most M, not P: on the PIPER 2 of 11) (kernel; batch with ``jax.vmap``)."""
+    pl = place(robot, capsules, spline, a, b, bounds)
+    ev = evaluate_placed(pl, capsules, obstacles, margin, bounds, k)
+    parts = link_of[1][link_of[0][ev.capsule]]  # (M,): the link's parts, -1 padded
+    return ev, _placed_upper_excess(robot, hulls, pl, obstacles.take(ev.box), margin, bounds, parts >= 0,
+                                    jnp.maximum(parts, 0))
 
 
 def hull_pair_clearance(hulls: HullModel, part, T_part, item, motion_b, margin,
@@ -279,6 +310,14 @@ class Links:
             raise LarcInputError(f"capsules and hull parts cover different links: {missing}")
         return Links(np.array([links.index(l) for l in capsules.link_names]),
                      np.array([links.index(l) for l in hulls.link_names]), len(links))
+
+    def part_table(self) -> np.ndarray:
+        """(L, M) the parts of each link, ``-1`` padded (M: the most parts a link has)."""
+        count = np.bincount(self.of_part, minlength=self.n_links)
+        table = np.full((self.n_links, max(1, int(count.max(initial=0)))), -1)
+        for l in range(self.n_links):
+            table[l, :count[l]] = np.flatnonzero(self.of_part == l)
+        return table
 
     def reduce_min(self, values: np.ndarray, owner: np.ndarray) -> np.ndarray:
         """(..., E, B) values per capsule or part -> (..., L, B) minimum per link."""

@@ -130,6 +130,7 @@ __all__ = [
     "trajectory_rounding",
     "trajectory_roundings",
     "time_offset",
+    "time_offsets",
     "rebase_ends",
     "dyadic_ends",
     "geometry_dtype",
@@ -182,9 +183,14 @@ def _two_diff(x, y):
 def time_offset(t) -> float:
     """The rebase offset of knot times ``t`` (T1): ``t[0]`` if every ``t_k - t[0]`` is exact in
     float64, else 0 (then the times are used as given)."""
+    return float(time_offsets(np.asarray(t, np.float64)[None])[0])
+
+
+def time_offsets(t) -> np.ndarray:
+    """:func:`time_offset` of every row of ``t`` (..., N): one rule for one trajectory and a batch."""
     t = np.asarray(t, np.float64)
-    _, err = _two_diff(t, t[0])
-    return float(t[0]) if bool(np.all(err == 0.0)) else 0.0
+    _, err = _two_diff(t, t[..., :1])
+    return np.where(np.all(err == 0.0, axis=-1), t[..., 0], 0.0)
 
 
 def rebase_ends(a, b, offset):
@@ -298,6 +304,9 @@ def trajectory_roundings(trajs, robot: Robot, capsules: CapsuleModel, dtype=np.f
     if hulls is not None:
         v_max = np.linalg.norm(np.asarray(hulls.vertices, np.float64), axis=-1).max(axis=1)
         hull_terms = _guard_terms(robot, hulls.link_index, v_max, hulls.motion_a)
+    for k, traj in enumerate(trajs):  # no segment: the maxima would be -inf and the guards negative
+        if len(traj.t) < 2:
+            raise LarcInputError(f"rounding bounds: trajectory {k} has {len(traj.t)} knot(s); need at least 2")
     return [b for lo in range(0, len(trajs), ROUNDING_CHUNK)
             for b in _roundings(trajs[lo:lo + ROUNDING_CHUNK], capsule_terms, hull_terms, dtype)]
 
@@ -320,8 +329,7 @@ def _roundings(trajs, capsule_terms, hull_terms, dtype) -> list[RoundingBounds]:
         t[k, :m], t[k, m:] = tr.t, tr.t[-1]
         q[k, :m], q[k, m:] = tr.q, tr.q[-1]
         v[k, :m], v[k, m:] = np.abs(tr.qd), np.abs(tr.qd[-1])
-    _, err = _two_diff(t, t[:, :1])
-    offset = np.where(np.all(err == 0.0, axis=1), t[:, 0], 0.0)  # time_offset of each (T1)
+    offset = time_offsets(t)  # T1; the padding repeats t_K, exact when every real step is
     tr = t - offset[:, None]  # exact (T1)
     rows = np.arange(B)
     t_mag = np.maximum(np.abs(tr[:, 0]), np.abs(tr[rows, n_knots - 1]))

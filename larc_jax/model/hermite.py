@@ -322,9 +322,14 @@ def pad_waypoints_batch(trajectories, n_knots: int, n_batch: int):
     t_out[len(trajectories):] = t_out[0]
     q_out[len(trajectories):] = q_out[0]
     qd_out[len(trajectories):] = qd_out[0]
-    if not np.all(np.diff(t_out, axis=1) > 0):  # times strictly increasing, padding knots too
-        k = int(np.flatnonzero(~np.all(np.diff(t_out, axis=1) > 0, axis=1))[0])
-        raise LarcInputError(f"hermite: padding times after t_K of trajectory {k} are not increasing in float64")
+    rising = np.diff(t_out, axis=1) > 0
+    if not np.all(rising):  # times strictly increasing, padding knots too
+        k = int(np.flatnonzero(~np.all(rising, axis=1))[0])
+        j = int(np.flatnonzero(~rising[k])[0])  # the first step that does not rise
+        m = len(trajectories[k][0]) if k < len(trajectories) else n_knots
+        what = (f"knot times t[{j}], t[{j + 1}] of trajectory {k} are not increasing" if j + 1 < m
+                else f"padding times after t_K of trajectory {k} are not increasing in float64")
+        raise LarcInputError(f"hermite: {what}")
     return t_out, q_out, qd_out
 
 
