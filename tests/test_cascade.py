@@ -187,6 +187,88 @@ def test_interval_pairs_matches_reference(dataset, model):
         np.testing.assert_allclose(np.asarray(d.motion_b), r.motion_b, atol=1e-15)
 
 
+def test_bounded_step_two_is_exact_where_it_matters(dataset, model):
+    """interval_pairs_bounded against the NumPy float64 reference: the k pairs of least lower
+    excess exact, every other pair at or below its exact clearance (one-sided), ``rest`` at or below
+    the least ``g - G`` of those pairs; the parts' numbers as step 2's. Random intervals, every
+    pair exact (k = C * B: ``rest`` +inf), one pair exact, and a zero-width interval."""
+    from larc_jax.leaf.cascade import interval_pairs_bounded
+
+    robot, capsules, hulls = model
+    trajs, scenes = dataset
+    obstacles = stack_scenes(scenes[:10], np.float64)
+    rng = np.random.default_rng(4)
+    for n in range(12):
+        k = n % 10
+        traj = trajs[k]
+        a, b = np.sort(rng.uniform(traj.t[0], traj.t[-1], 2)) if n != 11 else (traj.t[1], traj.t[1])
+        nb = scenes[k].n_boxes
+        n_exact = {9: capsules.n_capsules * obstacles.n_items, 10: 1}.get(n, 8)
+        bounds = trajectory_rounding(traj, robot, capsules, np.float64, hulls)
+        ar, br = rebase_ends(a, b, float(bounds.offset_s))
+        with jax.enable_x64(True):
+            spline = HermiteSpline.from_waypoints(traj.t - float(bounds.offset_s), traj.q, traj.qd)
+            d, rest = interval_pairs_bounded(robot, capsules, hulls, spline, obstacles.take(k), ar, br, MARGIN, bounds,
+                                             n_exact)
+        r = interval_pairs_np(robot, capsules, hulls, traj, scenes[k], a, b, MARGIN, bounds)
+        g, want = np.asarray(d.g_capsule)[:, :nb], r.g_capsule[:, :nb]
+        exact = np.abs(g - want) <= 1e-12
+        assert (g <= want + 1e-12).all() and exact.sum() >= min(n_exact, g.size), n
+        assert (np.asarray(d.g_capsule)[:, nb:] == np.inf).all()
+        G = np.asarray(bounds.guard_m)[:, None]
+        assert float(rest) <= ((want - G)[~exact]).min(initial=np.inf) + 1e-12, n
+        assert (float(rest) == np.inf) == (n == 9)
+        np.testing.assert_allclose(np.asarray(d.g_upper)[:, :nb], r.g_upper[:, :nb], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(d.T_part), r.T_part, atol=1e-12)
+
+
+def test_bounded_step_two_changes_no_decision(dataset, model, larc, monkeypatch):
+    """LARC with step 2 bounded (the default) and with every interval's step 2 all-exact
+    (exact_enough always False) walk the same intervals and record the same leaves: the same
+    stages, pairs and guards, clearances equal to the last bits (a pair's distance computed in
+    another compiled program)."""
+    import dataclasses
+
+    import larc_jax.engine.batch as batch_module
+
+    robot, capsules, _ = model
+    seen = []
+    real = batch_module.exact_enough
+
+    def spy(*args):
+        seen.append(real(*args))
+        return seen[-1]
+
+    monkeypatch.setattr(batch_module, "exact_enough", spy)
+    bounded = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
+    assert sum(int(s.sum()) for s in seen) > 0.8 * sum(len(s) for s in seen) > 0  # the bounded values served
+    monkeypatch.setattr(batch_module, "exact_enough", lambda links, cap, *rest: np.zeros(len(cap), bool))
+    exact = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
+    for r in (bounded, larc):
+        assert (r.certified == exact.certified).all() and (r.frontier == exact.frontier).all()
+        for f in dataclasses.fields(exact.leaves):
+            got, want = getattr(r.leaves, f.name), getattr(exact.leaves, f.name)
+            if f.name == "clearance_m":
+                np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-16)
+            else:
+                np.testing.assert_array_equal(got, want, err_msg=f.name)
+
+
+def test_exact_enough_on_named_cases():
+    """exact_enough: the interval's excess bounded from above below ``rest > 0`` -> True; a failing
+    capsule pair counts its parts' upper excess, a passing one its capsule excess; rest <= 0, NaN,
+    or the bound reaching ``rest`` -> False."""
+    from larc_jax.leaf.cascade import exact_enough
+
+    links = Links(np.array([0, 0, 1]), np.array([0, 1]), 2)
+    cap = np.array([[[0.5], [0.7], [0.9]]] * 6)  # (F, C, B): every capsule passes
+    upper = np.full((6, 2, 1), 2.0)
+    rest = np.array([0.6, 0.5, 0.0, np.nan, 0.6, 0.6])
+    cap[4, 0, 0] = -0.1  # link 0 fails: its parts' upper excess 2.0 counts, not rest-bound
+    cap[5, 0, 0], upper[5, 0, 0] = -0.1, 0.3  # the upper excess 0.3 < rest
+    np.testing.assert_array_equal(exact_enough(links, cap, upper, rest), [True, False, False, False, False, True])
+
+
 def test_select_and_combine_on_named_cases():
     """Two links (capsules 0, 1 on link 0; capsule 2 on link 1), one part each, two boxes."""
     links = Links(of_capsule=np.array([0, 0, 1]), of_part=np.array([0, 1]), n_links=2)

@@ -32,7 +32,7 @@ from ..compilation import cached_kernel, tracked_call
 from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel, by_vertex_class
 from ..lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
-from ..leaf.cascade import Links, PairDetails, combine, point_round, select_pairs, two_rounds
+from ..leaf.cascade import Links, PairDetails, combine, exact_enough, point_round, select_pairs, two_rounds
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import RoundingBounds, dyadic_ends, rebase_ends
 from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
@@ -45,9 +45,10 @@ from ..model.spline_batch import SplineBatch, spline_batch
 from ..obstacles import ObstacleSet, stack_scenes
 from .buckets import BUCKETS, CALL_BYTES, CASCADE_BUCKETS, CULLED_BUCKETS, PAIR_BUCKETS, PAIR_BYTES, size_class
 from .cull import CULL_DEPTH, WIDTHS, Cull, CullPart, build_cull, worth_culling
-from .kernels import (batched_interval_pairs, evaluate_intervals, evaluate_intervals_broad, evaluate_intervals_screened,
-                      evaluate_intervals_screened_broad, hull_first_axis, hull_pairs, hull_points, hull_screen,
-                      item_margins, self_intervals, swept_capsules, swept_intervals, swept_parts)
+from .kernels import (batched_interval_pairs, batched_interval_pairs_bounded, evaluate_intervals, evaluate_intervals_broad,
+                      evaluate_intervals_screened, evaluate_intervals_screened_broad, hull_first_axis, hull_pairs,
+                      hull_points, hull_screen, item_margins, self_intervals, swept_capsules, swept_intervals,
+                      swept_parts)
 
 __all__ = ["Batch", "prepare", "dyadic_ends"]
 
@@ -393,11 +394,21 @@ class Batch:
     def _hull_stage(self, tr, a, b, sel, on_compile) -> LeafRecord:
         """The hull stage (steps 2-5 of larc_jax.leaf.cascade) on the intervals ``(tr, a, b)``."""
         ar, br = self._rebased(tr, a, b)
-        d = PairDetails(*self._over(batched_interval_pairs, (self.robot, self.capsules, self.hulls), sel, tr, ar, br,
-                                    on_compile=on_compile, buckets=PAIR_BUCKETS))
-        links = Links.of(self.capsules, self.hulls)
+        links, head = Links.of(self.capsules, self.hulls), (self.robot, self.capsules, self.hulls)
         G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
         G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
+        # A few capsule pairs exact, every pair again where that could change a result (exact_enough);
+        # only without separate points (their third round may lift a part above its upper bound).
+        bounded = self.cull is None and not self.obstacles.separate_points().any()
+        fields = self._over(batched_interval_pairs_bounded if bounded else batched_interval_pairs, head, sel, tr, ar, br,
+                            on_compile=on_compile, buckets=PAIR_BUCKETS)
+        redo = np.flatnonzero(~exact_enough(links, fields[0] - G_c[:, :, None], fields[3] - G_p[:, :, None],
+                                            fields[4])) if bounded else []
+        if len(redo):
+            for x, y in zip(fields, self._over(batched_interval_pairs, head, _rows(sel, redo), tr[redo], ar[redo],
+                                               br[redo], on_compile=on_compile, buckets=PAIR_BUCKETS)):
+                x[redo] = y
+        d = PairDetails(*fields[:4])
         tried, triples = select_pairs(links, d.g_capsule - G_c[:, :, None], d.g_upper - G_p[:, :, None])
         g_hull = guard_hull = np.zeros(0)
         if len(triples):

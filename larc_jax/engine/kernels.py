@@ -13,8 +13,8 @@ import dataclasses
 import functools
 
 from ..lazy_jax import jax, jnp
-from ..leaf.cascade import (hull_pair_clearance, hull_points_clearance, interval_pairs, link_upper_excess,
-                            screened_interval)
+from ..leaf.cascade import (hull_pair_clearance, hull_points_clearance, interval_pairs, interval_pairs_bounded,
+                            link_upper_excess, screened_interval)
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import evaluate_interval
 from ..leaf.placement import place
@@ -24,7 +24,8 @@ from ..model.spline_batch import SplineRow
 from ..obstacles.polytope import GJK_ITERATIONS
 
 __all__ = ["evaluate_intervals", "evaluate_intervals_broad", "evaluate_intervals_screened",
-           "evaluate_intervals_screened_broad", "item_margins", "batched_interval_pairs", "hull_screen", "hull_first_axis", "hull_pairs",
+           "evaluate_intervals_screened_broad", "item_margins", "batched_interval_pairs",
+           "batched_interval_pairs_bounded", "hull_screen", "hull_first_axis", "hull_pairs",
            "self_intervals", "swept_intervals", "swept_capsules", "swept_parts"]
 
 
@@ -89,6 +90,20 @@ def screened_kernel(k: int | None):
 
 evaluate_intervals_screened = screened_kernel(None)
 evaluate_intervals_screened_broad = screened_kernel(BROAD_PHASE_K)
+
+
+@jax.jit
+def batched_interval_pairs_bounded(robot, capsules, hulls, splines, obstacles, bounds, traj, sel, a, b, margin):
+    """:func:`batched_interval_pairs` through :func:`~larc_jax.leaf.cascade.interval_pairs_bounded`:
+    its fields and ``rest`` (F,)."""
+
+    def one(k, s, ai, bi):
+        bnd = jax.tree.map(lambda x: x[k], bounds)
+        d, rest = interval_pairs_bounded(robot, capsules, hulls, SplineRow(splines, k), obstacles.take(s), ai, bi, margin,
+                                         bnd)
+        return d.g_capsule, d.T_part, d.motion_b, d.g_upper, rest
+
+    return jax.vmap(one)(traj, sel, a, b)
 
 
 @jax.jit

@@ -31,10 +31,13 @@ import math
 
 from ..lazy_jax import jnp
 
-__all__ = ["min_clearance", "min_clearance_np", "BROAD_PHASE_K"]
+__all__ = ["min_clearance", "pair_clearances", "min_clearance_np", "BROAD_PHASE_K", "PAIR_EXACT_K"]
 
 BROAD_PHASE_K = 4
 """Pairs per interval that get the exact distance in the broad phase (the rest only a bound)."""
+PAIR_EXACT_K = 8
+"""Pairs per interval that get the exact distance in step 2 of the cascade
+(:func:`pair_clearances`; larc_jax.leaf.cascade): every pair its capsules may fail, in nearly every interval."""
 
 
 def min_clearance(p_a, p_b, offset_seg, obstacles, offset_box, k: int | None = BROAD_PHASE_K,
@@ -74,18 +77,14 @@ def min_clearance(p_a, p_b, offset_seg, obstacles, offset_box, k: int | None = B
     lb = obstacles.segment_lower_bounds(p_a, p_b)
     lam = lb.astype(dt) * dist_scale - offset_seg[:, None] - offset_box[None, :] - guard[:, None]
     lam = jnp.where(mask[None, :], lam, inf).reshape(-1)
-    chosen, exact_v, exact_x = [], [], []
-    iota = jnp.arange(S * B)
-    for _ in range(k):
-        # argmin as two plain min-reductions (XLA's variadic argmin reduce is much slower).
-        i = jnp.min(jnp.where(lam == jnp.min(lam), iota, S * B - 1))
+    exact_v, exact_x = [], []
+    chosen, lam_chosen, lam = _smallest(lam, k)
+    for i, lam_i in zip(chosen, lam_chosen):
         s, b = i // B, i % B
         v = value(obstacles.take(b).segment_distance(p_a[s], p_b[s]), s, b)
-        real = mask[b] & (lam[i] < inf)
+        real = mask[b] & (lam_i < inf)
         exact_v.append(jnp.where(real, v, inf))
         exact_x.append(jnp.where(real, v - guard[s], inf))
-        chosen.append(i)
-        lam = jnp.where(iota == i, inf, lam)
     exact_v, exact_x, chosen = jnp.stack(exact_v), jnp.stack(exact_x), jnp.stack(chosen)
     m = jnp.min(exact_x)
     # Ties between chosen pairs: the smallest flat index, as the all-pairs argmin picks.
@@ -94,6 +93,40 @@ def min_clearance(p_a, p_b, offset_seg, obstacles, offset_box, k: int | None = B
     pick = jnp.where(flat == S * B, 0, pick)  # m is NaN: keep the first choice
     flat = chosen[pick]
     return exact_v[pick], flat // B, flat % B, m <= jnp.min(lam)
+
+
+def _smallest(lam, k: int):
+    """The flat indices of the ``k`` smallest of ``lam`` in order (ties: the smallest index), their
+    values, and ``lam`` with them set to +inf."""
+    n, inf = lam.shape[0], jnp.asarray(jnp.inf, lam.dtype)
+    iota, chosen, values = jnp.arange(n), [], []
+    for _ in range(k):
+        # argmin as two plain min-reductions (XLA's variadic argmin reduce is much slower).
+        i = jnp.min(jnp.where(lam == jnp.min(lam), iota, n - 1))
+        chosen.append(i)
+        values.append(lam[i])
+        lam = jnp.where(iota == i, inf, lam)
+    return chosen, values, lam
+
+
+def pair_clearances(p_a, p_b, offset_seg, obstacles, k: int, dist_scale=1.0, guard_seg=None):
+    """``(g, rest)``: every pair's clearance ``g = dist * dist_scale - offset_seg[s]`` (S, B) with the
+    ``k`` pairs of smallest lower excess ``lam = lb * dist_scale - offset_seg - guard_seg`` (module
+    docstring) exact and every other pair at its lower bound ``lb * dist_scale - offset_seg``
+    (never above its exact value: scaling and subtracting are monotone under rounding), and
+    ``rest``, the smallest ``lam`` of the pairs left at their bound (+inf if none): a lower bound of
+    ``g - guard_seg`` for each of them. Masked items: +inf."""
+    S, B = p_a.shape[0], obstacles.n_items
+    dt = jnp.result_type(offset_seg, 0.0)
+    g = jnp.where(obstacles.mask[None, :], obstacles.segment_lower_bounds(p_a, p_b).astype(dt) * dist_scale
+                  - offset_seg[:, None], jnp.inf).reshape(-1)
+    chosen, _, rest = _smallest(g - jnp.repeat(guard_seg, B), min(k, S * B))
+    iota = jnp.arange(S * B)
+    for i in chosen:
+        s, b = i // B, i % B
+        v = obstacles.take(b).segment_distance(p_a[s], p_b[s]).astype(dt) * dist_scale - offset_seg[s]
+        g = jnp.where(iota == i, jnp.where(obstacles.mask[b], v, jnp.inf), g)  # a select, not a scatter
+    return g.reshape(S, B), jnp.min(rest, initial=jnp.inf)
 
 
 def min_clearance_np(p_a, p_b, offset_seg, obstacles, offset_box):

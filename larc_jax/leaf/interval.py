@@ -131,6 +131,7 @@ __all__ = [
     "trajectory_roundings",
     "time_offset",
     "time_offsets",
+    "capsule_offsets",
     "rebase_ends",
     "dyadic_ends",
     "geometry_dtype",
@@ -416,16 +417,23 @@ def evaluate_interval(robot: Robot, capsules: CapsuleModel, spline: HermiteSplin
     return evaluate_placed(place(robot, capsules, spline, a, b, bounds), capsules, obstacles, margin, bounds, k)
 
 
+def capsule_offsets(pl: Placement, capsules: CapsuleModel, margin):
+    """``(shell (C,), dist_scale)`` of the capsule test on an interval placed as ``pl``: a capsule's
+    clearance is ``dist * dist_scale - shell``, with ``shell = (r + b + rho)(1 + 2 eps)`` (G4) and
+    ``dist_scale = 1 - K_DIST_REL eps_g`` deflating the computed distance (G2)."""
+    eps = float(jnp.finfo(pl.q_mid.dtype).eps)
+    eps_g = float(jnp.finfo(pl.p_world_a.dtype).eps)
+    return (capsules.radius + pl.motion_b + margin) * (1 + 2 * eps), 1 - K_DIST_REL * eps_g
+
+
 def evaluate_placed(pl: Placement, capsules: CapsuleModel, obstacles, margin, bounds,
                     k: int | None = None) -> IntervalEval:
     """The capsule-box test (eq. 7) of :func:`evaluate_interval` on an interval already placed
     (:func:`~larc_jax.leaf.placement.place`): the capsule stage of the leaf test."""
-    eps = float(jnp.finfo(pl.q_mid.dtype).eps)
-    eps_g = float(jnp.finfo(pl.p_world_a.dtype).eps)
     p_world_a, p_world_b, motion_b = pl.p_world_a, pl.p_world_b, pl.motion_b
+    shell, dist_scale = capsule_offsets(pl, capsules, margin)
     dist = obstacles.segment_distances(p_world_a, p_world_b)
-    dist = dist.astype(pl.q_mid.dtype) * (1 - K_DIST_REL * eps_g)  # G2
-    shell = (capsules.radius + motion_b + margin) * (1 + 2 * eps)  # G4
+    dist = dist.astype(pl.q_mid.dtype) * dist_scale  # G2
     g_cb = jnp.where(obstacles.mask[None, :], dist - shell[:, None], jnp.inf)  # eq. 7 (unused outputs cost nothing)
     n_boxes = obstacles.n_items
     if k is None:
@@ -437,7 +445,7 @@ def evaluate_placed(pl: Placement, capsules: CapsuleModel, obstacles, margin, bo
         # monotone images of a distance lower bound (larc_jax.leaf.clearance).
         g_pick, capsule, box, exact = min_clearance(
             p_world_a, p_world_b, shell, obstacles, jnp.zeros(n_boxes, shell.dtype), k,
-            dist_scale=1 - K_DIST_REL * eps_g, guard_seg=bounds.guard_m)
+            dist_scale=dist_scale, guard_seg=bounds.guard_m)
     g = jnp.where(pl.finite, g_pick, jnp.nan)  # NaN never certifies
     return IntervalEval(g=g, guard=bounds.guard_m[capsule], capsule=capsule, box=box, t_mid=pl.t_mid, h=pl.h,
                         h_cov=pl.h_cov, q_mid=pl.q_mid, omega_max=pl.omega_max, motion_b=motion_b,
