@@ -104,6 +104,10 @@ class Batch:
     """The swept stage's chain tables (:mod:`larc_jax.leaf.swept`); None: no swept stage."""
     cull: Cull | None = None
     """The pieces each subtree of intervals keeps (:mod:`larc_jax.engine.cull`); None: every item."""
+    links: Links | None = None
+    """Which link each capsule and hull part belongs to (given :attr:`hulls`), built once per batch."""
+    link_parts: np.ndarray | None = None
+    """(L, M) :meth:`Links.part_table <larc_jax.leaf.cascade.Links.part_table>` of :attr:`links`."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -234,14 +238,15 @@ class Batch:
         # The screen (below; only a verdict needed: the hull stage alone decides it) comes from step
         # 1's own placement, in an unculled batch (a culled one would compile it for every width).
         screen_on = cascade and self.hulls is not None and self.swept is None and np.any(may_bisect)
-        screened = screen_on and self.cull is None
+        # LARC's deepest level too (its screen unused): one compiled step 1 for every level, not two.
+        screened = cascade and self.hulls is not None and self.swept is None and may_bisect is not None \
+            and self.cull is None
         upper = np.full(len(traj), np.nan)  # the screen's excess where step 1 gave it (NaN: not given)
         if len(test):  # every interval (no untested one): the arrays as they are, not copies
             t = slice(None) if len(test) == len(traj) else test
             kernel = ((evaluate_intervals_screened_broad if broad else evaluate_intervals_screened) if screened
                       else evaluate_intervals_broad if broad else evaluate_intervals)
-            links = Links.of(self.capsules, self.hulls) if screened else None
-            out = self._over(kernel, (*head, self.hulls, (links.of_capsule, links.part_table())) if screened else head,
+            out = self._over(kernel, (*head, self.hulls, (self.links.of_capsule, self.link_parts)) if screened else head,
                              sel if len(test) == len(traj) else _rows(sel, test), traj[t], ar[t], br[t], on_chunk,
                              on_compile, buckets)
             g[t], guard[t], cap[t], box[t], exact[t] = out[:5]
@@ -330,7 +335,7 @@ class Batch:
         caps_call = swept_capsules if len(self.devices) > 1 else cached_kernel(swept_capsules)
         d = SweptPlacement(*self._over(swept_intervals, (self.robot, self.capsules, self.hulls, self.swept), sel, tr,
                                        ar, br, on_compile=on_compile, buckets=CASCADE_BUCKETS))
-        links = swept_links(self.capsules, None if self.hulls is None else Links.of(self.capsules, self.hulls))
+        links = swept_links(self.capsules, self.links)
         G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
 
         def clear_capsules(triples):
@@ -366,7 +371,7 @@ class Batch:
         by step 1 as ``upper`` (:func:`~larc_jax.leaf.cascade.screened_interval`), computed here where NaN."""
         ask = np.flatnonzero(np.isnan(upper))
         if len(ask):
-            links, (leaves, tree) = Links.of(self.capsules, self.hulls), self._items(sel, ask, box[ask])
+            links, (leaves, tree) = self.links, self._items(sel, ask, box[ask])
             call = hull_screen if len(self.devices) > 1 else cached_kernel(hull_screen)
             upper = upper.copy()
             upper[ask] = self.bucketed(lambda t, x, y, m, *it: tracked_call(call, (
@@ -394,7 +399,7 @@ class Batch:
     def _hull_stage(self, tr, a, b, sel, on_compile) -> LeafRecord:
         """The hull stage (steps 2-5 of larc_jax.leaf.cascade) on the intervals ``(tr, a, b)``."""
         ar, br = self._rebased(tr, a, b)
-        links, head = Links.of(self.capsules, self.hulls), (self.robot, self.capsules, self.hulls)
+        links, head = self.links, (self.robot, self.capsules, self.hulls)
         G_c = np.asarray(self.bounds.guard_m)[tr]  # (F', C)
         G_p = np.asarray(self.bounds.hull_guard_m)[tr]  # (F', P)
         # A few capsule pairs exact, every pair again where that could change a result (exact_enough);
@@ -463,6 +468,7 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
                            accel=swept is not None,  # the swept stage reads accelerations
                            call=lambda fn, args: tracked_call(fn, args, on_compile))
     robot_g, capsules_g = _geometry(robot, capsules, dtype)
+    links = None if hulls is None else Links.of(capsules, hulls)
     batch = Batch(
         robot=robot_g, capsules=capsules_g, splines=splines, bounds=stacked,
         obstacles=obstacles, scene_of=scene_of,
@@ -471,7 +477,7 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         devices=tuple(jax.devices() if devices is None else devices),
         hulls=None if hulls is None else _hulls_geometry(hulls, dtype), self_pairs=self_pairs,
         self_skip=None if self_skip is None else np.stack(list(self_skip) + list(self_skip[:1]) * n_pad),
-        swept=swept,
+        swept=swept, links=links, link_parts=None if links is None else links.part_table(),
     )
     if cull:
         def run(kernel, boxes, traj, depth, index, width):
