@@ -597,7 +597,7 @@ def test_screened_intervals_fail_the_cascade(dataset, model, monkeypatch):
     np.testing.assert_array_equal(screened.clearance_m[passed], whole.clearance_m[passed])
 
 
-def test_larc_compiles_one_step_one(dataset, model, larc, monkeypatch):
+def test_larc_compiles_one_step_one(dataset, model, monkeypatch):
     """LARC's cascade runs step 1 through the screened kernel at every level, its deepest included
     (one compiled program, not two); its deepest-level leaves are the leaves fixed-fine writes for
     the same intervals (fine runs the plain kernel): same verdicts, stages and pairs, clearances
@@ -612,13 +612,12 @@ def test_larc_compiles_one_step_one(dataset, model, larc, monkeypatch):
         return real(self, kernel, *args, **kw)
 
     monkeypatch.setattr(batch_module.Batch, "_over", spy)
-    again = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
+    larc = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
     step_one = {k for k in kernels if k.startswith("evaluate_intervals")}
     assert step_one and all(k.startswith("evaluate_intervals_screened") for k in step_one), step_one
     kernels.clear()
     fine = lj.certify(*dataset, robot, capsules, method="fine", margin=MARGIN, max_depth=DEPTH)
     assert not any(k.startswith("evaluate_intervals_screened") for k in kernels)
-    assert (again.certified == larc.certified).all()
     deep = np.flatnonzero(larc.leaves.depth == DEPTH)
     assert len(deep) > 20 and (~larc.leaves.certified[deep]).any()  # failing and passing deepest leaves
     key = lambda r, rows: r.leaves.traj[rows] * 2**DEPTH + r.leaves.index[rows]  # noqa: E731
