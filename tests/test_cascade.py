@@ -508,7 +508,7 @@ def test_screen_from_step_one_is_the_screen(dataset, model):
     robot, capsules, hulls = model
     trajs, scenes = dataset
     links = Links.of(capsules, hulls)
-    table = links.part_table()
+    table = links.part_table
     for l in range(links.n_links):
         row = table[l][table[l] >= 0]
         np.testing.assert_array_equal(row, np.flatnonzero(links.of_part == l))

@@ -46,6 +46,32 @@ def test_aligned_boxes_kernels_equal_numpy_twins_and_padding_is_inf():
         np.testing.assert_allclose(point[:, k], item.point_distance_np(p_a), atol=1e-15)
 
 
+def test_nearest_point_distances_bit_for_bit():
+    """AlignedBoxes' set-level ``nearest_point_distances`` (square root after the least square,
+    sums axis by axis) gives the protocol's default (every ``point_distance``, then the least) bit
+    for bit, in float64 and float32: points inside, on faces and corners, far; a padding box is
+    +inf; each value is the NumPy twin's least distance."""
+    rng = np.random.default_rng(5)
+    boxes = random_boxes(rng, 6)
+    boxes = AlignedBoxes(boxes.lo, boxes.hi, np.array([True] * 5 + [False]))
+    pts = rng.uniform(-1.0, 1.0, (11, 14, 3))
+    pts[0, :6] = boxes.lo  # corners
+    pts[1, :6] = (boxes.lo + boxes.hi) / 2  # inside
+    pts[2, :6, 0], pts[2, :6, 1:] = boxes.hi[:, 0], (boxes.lo[:, 1:] + boxes.hi[:, 1:]) / 2  # on a face
+    for dtype in (np.float64, np.float32):
+        with jax.enable_x64(dtype == np.float64):
+            b = AlignedBoxes(boxes.lo.astype(dtype), boxes.hi.astype(dtype), boxes.mask)
+            p = pts.astype(dtype)
+            fast, default = (np.asarray(x) for x in jax.jit(
+                lambda b, p: (b.nearest_point_distances(p), ObstacleSet.nearest_point_distances(b, p)))(b, p))
+        assert fast.dtype == dtype and fast.shape == (11, 6)
+        np.testing.assert_array_equal(fast, default)
+        assert (fast[:, 5] == np.inf).all() and (fast[:2, :5] == 0).all() and (fast[2, :5] == 0).all()
+        for k in range(5):
+            twin = np.array([boxes.take(k).point_distance_np(pts[i]).min() for i in range(len(pts))])
+            np.testing.assert_allclose(fast[:, k], twin, rtol=1e-6 if dtype == np.float32 else 1e-15, atol=1e-7)
+
+
 def test_named_edge_cases_and_nan():
     box = AlignedBoxes(lo=np.zeros(3), hi=np.ones(3), mask=np.bool_(True))
     touching = ([1.0, 0.5, 0.5], [2.0, 0.5, 0.5])  # starts on a face and leaves it

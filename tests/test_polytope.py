@@ -197,3 +197,43 @@ def test_every_product_is_ieee_in_float32():
         assert dots
         for e in dots:
             assert e.params["precision"] == (jax.lax.Precision.HIGHEST,) * 2, e
+
+
+def test_first_max_picks_what_argmax_picks():
+    """The support vertex by two plain reductions is ``jnp.argmax``'s, ties (equal scores, +0 and
+    -0) included; NaN scores give no winner (the bound is then -inf, below)."""
+    from larc_jax.obstacles.polytope import first_max
+
+    rng = np.random.default_rng(3)
+    rows = [rng.normal(size=691), rng.integers(-3, 4, 57).astype(float),  # many ties
+            np.array([0.0, -0.0, -1.0]), np.array([-0.0, 0.0]), np.full(8, 2.5), np.array([-np.inf, -np.inf, 1.0])]
+    with jax.enable_x64(True):
+        for row in rows:
+            k, found = jax.jit(first_max)(jnp.asarray(row))
+            assert bool(found) and int(k) == int(jnp.argmax(jnp.asarray(row))) == int(np.argmax(row))
+        batch = rng.integers(0, 5, (64, 40)).astype(float)
+        k, found = jax.jit(jax.vmap(first_max))(jnp.asarray(batch))
+        np.testing.assert_array_equal(np.asarray(k), batch.argmax(axis=1))
+        assert np.asarray(found).all()
+        k, found = jax.jit(first_max)(jnp.asarray([1.0, np.nan, 2.0]))
+        assert not bool(found) and int(k) == 0
+
+
+def test_no_winner_gives_no_bound(monkeypatch):
+    """Where the support search finds no vertex scoring the maximum (NaN scores, or XLA computing the
+    scores twice with different roundings), the kernel gives -inf (no bound), never a bound from an
+    arbitrary vertex; non-finite input still gives NaN."""
+    import larc_jax.obstacles.polytope as polytope
+
+    V = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    lo, hi = np.array([0.3, -0.1, -0.1]), np.array([0.4, 0.1, 0.1])
+
+    def bound(t):  # traced anew on every call (a new function), so the patch below is seen
+        with jax.enable_x64(True):
+            fn = jax.jit(lambda *a: polytope_box_lower_bound(*a))
+            return float(fn(jnp.asarray(V[None]), 0, *(jnp.asarray(x) for x in (V.mean(0), np.eye(3), t, lo, hi))))
+
+    assert bound(np.zeros(3)) == pytest.approx(0.2, abs=1e-12)
+    monkeypatch.setattr(polytope, "first_max", lambda scores: (jnp.zeros((), jnp.int32), jnp.asarray(False)))
+    assert bound(np.zeros(3)) == -math.inf
+    assert math.isnan(bound(np.array([np.nan, 0.0, 0.0])))

@@ -118,8 +118,9 @@ class HullModel:
         columns read summed over the parts.
 
         Why: the support search of the hull stage reads every column of a part's row, so padding
-        a 122-vertex part to the largest part's 691 multiplies its cost by 5.7 (measured on PIPER:
-        the first axis 4.2x, the full search 2.5x cheaper on the 136 columns of its class)."""
+        a 122-vertex part to the largest part's 691 multiplies that reading by 5.7 (measured on
+        PIPER, 1024 pairs a call: the first axis 2.8x, the full search 1.65x cheaper on the 136
+        columns of its class; before the support's two-reduction choice, 4.2x and 2.5x)."""
         return _vertex_classes(self.n_vertices, int(np.shape(self.vertices)[1]), most)
 
     def first_columns(self, n: int) -> "HullModel":
@@ -155,8 +156,11 @@ def _vertex_classes(n_vertices: tuple[int, ...], K: int, most: int) -> tuple[int
 
 CLASS_ITEM_COLUMNS = 128
 """Per-pair work of a hull-stage call that does not read the vertex table, in vertex columns
-(measured on PIPER, 1024 pairs a call: the first axis costs ~37 columns' worth, the full search
-~234)."""
+(measured on PIPER, 1024 pairs a call, when this was set: the first axis cost ~37 columns' worth,
+the full search ~234). The support's two-reduction choice (:func:`~larc_jax.obstacles.polytope.first_max`)
+made a column 3-5x cheaper, so the same work is now ~220 and ~720 columns' worth; 512 here
+changed neither Stage B's leaves nor its warm time (0.286 s against 0.288 s, LARC, cascade), so
+the value stayed."""
 CLASS_CALL_COLUMNS = 64 * 256
 """Fixed cost of one call, in pair-columns (~0.2 ms of a 2-core CPU: about 64 pairs of 256
 columns)."""

@@ -106,8 +106,6 @@ class Batch:
     """The pieces each subtree of intervals keeps (:mod:`larc_jax.engine.cull`); None: every item."""
     links: Links | None = None
     """Which link each capsule and hull part belongs to (given :attr:`hulls`), built once per batch."""
-    link_parts: np.ndarray | None = None
-    """(L, M) :meth:`Links.part_table <larc_jax.leaf.cascade.Links.part_table>` of :attr:`links`."""
 
     def _put(self, *arrays):
         """Shard interval-axis arrays over :attr:`devices` (a 1-D mesh); the rest of the inputs
@@ -237,16 +235,16 @@ class Batch:
         test = np.flatnonzero(~untested) if width else np.zeros(0, np.int64)
         # The screen (below; only a verdict needed: the hull stage alone decides it) comes from step
         # 1's own placement, in an unculled batch (a culled one would compile it for every width).
-        screen_on = cascade and self.hulls is not None and self.swept is None and np.any(may_bisect)
+        hull_last = cascade and self.hulls is not None and self.swept is None  # the hull stage, then no other
+        screen_on = hull_last and np.any(may_bisect)
         # LARC's deepest level too (its screen unused): one compiled step 1 for every level, not two.
-        screened = cascade and self.hulls is not None and self.swept is None and may_bisect is not None \
-            and self.cull is None
+        screened = hull_last and may_bisect is not None and self.cull is None
         upper = np.full(len(traj), np.nan)  # the screen's excess where step 1 gave it (NaN: not given)
         if len(test):  # every interval (no untested one): the arrays as they are, not copies
             t = slice(None) if len(test) == len(traj) else test
             kernel = ((evaluate_intervals_screened_broad if broad else evaluate_intervals_screened) if screened
                       else evaluate_intervals_broad if broad else evaluate_intervals)
-            out = self._over(kernel, (*head, self.hulls, (self.links.of_capsule, self.link_parts)) if screened else head,
+            out = self._over(kernel, (*head, self.hulls, (self.links.of_capsule, self.links.part_table)) if screened else head,
                              sel if len(test) == len(traj) else _rows(sel, test), traj[t], ar[t], br[t], on_chunk,
                              on_compile, buckets)
             g[t], guard[t], cap[t], box[t], exact[t] = out[:5]
@@ -477,7 +475,7 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
         devices=tuple(jax.devices() if devices is None else devices),
         hulls=None if hulls is None else _hulls_geometry(hulls, dtype), self_pairs=self_pairs,
         self_skip=None if self_skip is None else np.stack(list(self_skip) + list(self_skip[:1]) * n_pad),
-        swept=swept, links=links, link_parts=None if links is None else links.part_table(),
+        swept=swept, links=links,
     )
     if cull:
         def run(kernel, boxes, traj, depth, index, width):

@@ -79,6 +79,7 @@ on one interval with the NumPy float64 references (:func:`interval_pairs_np`,
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -176,9 +177,9 @@ def _part_upper_bounds(robot: Robot, hulls: HullModel, pl, obstacles, margin, pa
     T = forward_kinematics(robot, pl.q_mid.astype(gdtype))[of(jnp.asarray(hulls.link_index))][:, :3, :]  # (P, 3, 4)
     motion_b = motion_radii(of(hulls.motion_a), pl.h_cov, pl.speed)  # eq. 6, the parts' own a_pj
     probes = jnp.einsum("pij,pqj->pqi", T[:, :, :3], of(hulls.probes).astype(gdtype)) + T[:, None, :, 3]
-    d = obstacles.point_distances(probes.reshape(-1, 3)).reshape(probes.shape[:2] + (-1,))  # (P, Q, B)
+    d = obstacles.nearest_point_distances(probes)  # (P, B)
     # An upper bound, used only to skip pairs that cannot pass: no rounding care needed.
-    g_upper = d.min(axis=1).astype(motion_b.dtype) - _shell(of(hulls.radius), motion_b, margin, eps)[:, None]
+    g_upper = d.astype(motion_b.dtype) - _shell(of(hulls.radius), motion_b, margin, eps)[:, None]
     return T, motion_b, jnp.where(obstacles.mask[None, :], g_upper, jnp.inf)
 
 
@@ -212,7 +213,7 @@ def screened_interval(robot: Robot, capsules: CapsuleModel, hulls: HullModel, li
     """Step 1 and the screen from one placement: ``(ev, excess)``, ``ev`` the capsule test of
     :func:`~larc_jax.leaf.interval.evaluate_interval` (broad phase ``k``) and ``excess`` the
     screen (:func:`link_upper_excess`) on the (link, item) pair ``ev`` records; ``link_of =
-    (Links.of_capsule, Links.part_table())``. Only read where the capsules fail. The placement
+    (Links.of_capsule, Links.part_table)``. Only read where the capsules fail. The placement
     and the speed maxima are computed once for both, and only the recorded link's parts are
     bounded (at most M, not P: on the PIPER 2 of 11) (kernel; batch with ``jax.vmap``)."""
     pl = place(robot, capsules, spline, a, b, bounds)
@@ -353,8 +354,10 @@ class Links:
         return Links(np.array([links.index(l) for l in capsules.link_names]),
                      np.array([links.index(l) for l in hulls.link_names]), len(links))
 
+    @functools.cached_property
     def part_table(self) -> np.ndarray:
-        """(L, M) the parts of each link, ``-1`` padded (M: the most parts a link has)."""
+        """(L, M) the parts of each link, ``-1`` padded (M: the most parts a link has); built on
+        first use, then kept (a batch reads it at every level)."""
         count = np.bincount(self.of_part, minlength=self.n_links)
         table = np.full((self.n_links, max(1, int(count.max(initial=0)))), -1)
         for l in range(self.n_links):

@@ -21,7 +21,7 @@ import numpy as np
 
 from .geometry import (point_box_distance, point_box_distance_np, segment_box_distance, segment_box_distance_np,
                         segment_box_lower_bound, segment_box_lower_bound_np)
-from ..lazy_jax import pytree_dataclass
+from ..lazy_jax import jnp, pytree_dataclass
 from .polytope import GJK_ITERATIONS, polytope_box_lower_bound, polytope_box_lower_bound_np
 from ..model.scene import Scene, pad_scenes
 from .protocol import ObstacleSet
@@ -80,6 +80,19 @@ class AlignedBoxes(ObstacleSet):
 
     def point_distance_np(self, p):
         return point_box_distance_np(p, self.lo, self.hi)
+
+    def nearest_point_distances(self, points):
+        """The set-level helper of :class:`ObstacleSet` (one scene's boxes; ``points`` (P, Q, 3)),
+        with the values :func:`point_box_distance` gives, bit for bit: the square root is taken
+        after the least squared distance over the Q points, not on each (it is monotone and
+        correctly rounded, so the two agree), and the squares are summed axis by axis on (P, Q, N)
+        arrays, in the order of the kernel's sum, instead of over a minor axis of length 3."""
+        f = 0
+        for i in range(3):
+            x = points[:, :, None, i]
+            gap = jnp.maximum(jnp.maximum(self.lo[:, i] - x, x - self.hi[:, i]), 0)
+            f = f + gap * gap
+        return jnp.where(self.mask, jnp.sqrt(f.min(axis=1)), jnp.inf)
 
     def polytope_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
         return polytope_box_lower_bound(vertices, part, centre, R, t, self.lo, self.hi, iterations)

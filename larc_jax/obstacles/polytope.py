@@ -37,7 +37,10 @@ is off the exactly placed one by the placement error that the hull part's roundi
 bounded *a posteriori*, from the numbers of each evaluation, and subtracted from it:
 
 * the support vertex ``k`` is chosen with a rounded axis ``m = fl(R^T w)`` and rounded dot
-  products: it may miss the true maximum of ``w . (R v)`` by ``<= 12 u |w| max_j |v_j|``;
+  products: it may miss the true maximum of ``w . (R v)`` by ``<= 12 u |w| max_j |v_j|``
+  (:func:`first_max` chooses it by two reductions, each of which may compute the scores anew:
+  the winner scores the maximum in one of them, so the bound holds; should none, the
+  evaluation gives -inf, no bound);
 * ``s = fl(corner - p)`` (one rounding per component), ``fl(w . s)`` (3 terms) and
   ``fl(sqrt(w . w))`` and the division: ``<= 8 u (sum_i |w_i s_i| / |w| + |lb|)``.
 
@@ -156,6 +159,23 @@ def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     return x, lam4
 
 
+def first_max(scores):
+    """``(k, found)``: the first index of the largest of ``scores`` (n,), the vertex ``jnp.argmax``
+    picks, found by two plain reductions (a max, then a min over the indices that equal it):
+    XLA's CPU backend runs ``argmax``'s variadic value-and-index reduce several times slower, and
+    this is the search's inner loop (every step scans the part's vertices).
+
+    XLA may compute ``scores`` once for each reduction. Whatever rounding each computation has,
+    the winner scores the maximum in one of them, so the choice misses the true maximum by no more
+    than with a single computation (the module docstring's ``12 u`` term). Should no index equal
+    the maximum (NaN scores, or two computations that disagree), ``found`` is False and ``k`` 0:
+    the caller then gives no bound (-inf) rather than one from an arbitrary vertex."""
+    n = scores.shape[0]
+    k = jnp.min(jnp.where(scores == jnp.max(scores), jnp.arange(n), n))
+    found = k < n
+    return jnp.where(found, k, 0), found
+
+
 def _triple(a, b, c):
     return _dot(a, jnp.cross(b, c))
 
@@ -218,7 +238,9 @@ def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_fi
     table = vertices.astype(dtype)
     unit_x = jnp.array([1.0, 0.0, 0.0], dtype)
     u = float(jnp.finfo(dtype).eps) / 2
-    v_max = jnp.max(jnp.abs(table[part]).sum(axis=1))  # >= max_j |v_j| (1-norm >= 2-norm)
+    # >= max_j |v_j| (1-norm >= 2-norm). Taken per part over the whole table, then indexed: under
+    # vmap the table is shared, so this is one pass over it, not one per pair.
+    v_max = jnp.max(jnp.abs(table).sum(axis=2), axis=1)[part]
     union = R.ndim == 3  # static: several placements
     if union:
         v_max = v_max + jnp.max(jnp.abs(t).sum(axis=1))  # the translations enter the choice
@@ -229,21 +251,22 @@ def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_fi
         """(S) at ``w`` less its rounding bound (module docstring), and the point of D = B - P
         attaining it."""
         w = jnp.where(_dot(w, w) > 0, w, unit_x)  # any axis is sound; this one avoids 0/0
-        V = table[part]  # read by the reduction only (fused); the winner is fetched apart
+        V = table[part]  # read by the reductions only (fused); the winner is fetched apart
         if union:
             m = jnp.einsum("pij,i->pj", R, w, precision=jax.lax.Precision.HIGHEST)  # the axis per placement
             scores = V[:, None, 0] * m[:, 0] + V[:, None, 1] * m[:, 1] + V[:, None, 2] * m[:, 2] + _dot(t, w)
-            flat = jnp.argmax(scores.reshape(-1))
+            flat, found = first_max(scores.reshape(-1))
             k, i = flat // R.shape[0], flat % R.shape[0]
             placed = _dot(R[i], table[part, k]) + t[i]
         else:
             m = _dot(R.T, w)  # the axis in the link frame
-            k = jnp.argmax(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
+            k, found = first_max(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
             placed = _dot(R, table[part, k]) + t
         s = lowest(w) - placed
         norm = jnp.sqrt(_dot(w, w))
         lb = _dot(w, s) / norm
-        return lb - 32 * u * (_dot(jnp.abs(w), jnp.abs(s)) / norm + jnp.abs(lb) + v_max), s
+        lb = lb - 32 * u * (_dot(jnp.abs(w), jnp.abs(s)) / norm + jnp.abs(lb) + v_max)
+        return jnp.where(found, lb, -jnp.inf), s  # no winner found: no bound, never more than (S)
 
     if union:
         c = jnp.mean(jnp.einsum("pij,j->pi", R, centre, precision=jax.lax.Precision.HIGHEST) + t, axis=0)

@@ -15,7 +15,9 @@ float64 twin (suffix ``_np``) for the reference scheduler and ``larc verify``:
   lower bound (the capsule stage);
 - ``segment_lower_bound(p0, p1)``: a cheap lower bound of that distance (the broad phase);
 - ``point_distance(p)``: distance from points ``p`` (..., 3) to the item; only used for an *upper*
-  bound that skips work, so it needs no rounding care;
+  bound that skips work, so it needs no rounding care (a kind may also override the set-level
+  :meth:`ObstacleSet.nearest_point_distances`, the form the hull stage calls, with a faster
+  equivalent);
 - ``polytope_lower_bound(vertices, part, centre, R, t, iterations)``: a lower bound on the distance from the
   polytope ``conv(R vertices[part] + t)`` to the item (the hull stage; the twin takes the part's
   vertex array ``V`` instead of ``vertices, part``). ``R, t`` may also be a stack of placements
@@ -122,6 +124,12 @@ class ObstacleSet(abc.ABC):
     def point_distances(self, points):
         """(M, N) ``point_distance`` of points (M, 3) to every item."""
         return self._over_items(type(self).point_distance, points)
+
+    def nearest_point_distances(self, points):
+        """(P, N): for each group of points ``points[p]`` (P, Q, 3), the ``point_distance`` of its
+        nearest point to every item (an upper bound's input: no rounding care)."""
+        P, Q = points.shape[:2]
+        return self.point_distances(points.reshape(P * Q, 3)).reshape(P, Q, -1).min(axis=1)
 
     def _over_items(self, kernel, *per_row):
         def one(item, *row):
