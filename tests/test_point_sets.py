@@ -462,10 +462,9 @@ def test_view_draws_shapes_and_pieces(tmp_path):
     cloud: one handle per box and shape, one point cloud for the pieces; a leaf recorded on a
     piece is drawn with that piece."""
     pytest.importorskip("viser")
-    import socket
-
     from larc_jax.drivers.cli import main
     from larc_jax.products.view import view
+    from tests.browser import free_port
 
     for name in ("bracket.stl", "table_cloud.npy", "reach_left.yaml"):
         shutil.copy(EX / name, tmp_path / name)
@@ -476,10 +475,7 @@ def test_view_draws_shapes_and_pieces(tmp_path):
     cert = tmp_path / "cert.json"
     assert main(["certify", str(tmp_path / "reach_left.yaml"), "--scene", str(tmp_path / "cell.yaml"),
                  "--certificate", str(cert), "-q"]) == 0
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    v = view(cert, port=port, block=False)
+    v = view(cert, port=free_port(), block=False)
     try:
         scene = v.data.items[0].scene
         assert scene.n_boxes == 1 and scene.shapes.count == 1 and scene.point_sets.count > 2

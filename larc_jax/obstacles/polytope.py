@@ -162,8 +162,10 @@ def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
 def first_max(scores):
     """``(k, found)``: the first index of the largest of ``scores`` (n,), the vertex ``jnp.argmax``
     picks, found by two plain reductions (a max, then a min over the indices that equal it):
-    XLA's CPU backend runs ``argmax``'s variadic value-and-index reduce several times slower, and
-    this is the search's inner loop (every step scans the part's vertices).
+    XLA's CPU backend runs ``argmax``'s variadic value-and-index reduce slower, and this is the
+    search's inner loop (every step scans the part's vertices): 4,608 PIPER pairs of 691 columns,
+    12 steps, took 165 ms with this choice against 264 ms with ``argmax`` (one call each, a loaded
+    2-core machine, before ``v_max`` was taken per part).
 
     XLA may compute ``scores`` once for each reduction. Whatever rounding each computation has,
     the winner scores the maximum in one of them, so the choice misses the true maximum by no more
