@@ -17,7 +17,8 @@ import numpy as np
 
 from ..errors import LarcInputError
 from ..lazy_jax import jax, jnp, pytree_dataclass
-from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
+from ..model.kinematics import link_poses
+from ..model.robot import Robot, forward_kinematics_np
 
 __all__ = ["CapsuleModel", "capsule_segments", "capsule_segments_np"]
 
@@ -138,8 +139,7 @@ def capsule_segments(robot: Robot, capsules: CapsuleModel, q: jax.Array):
     Returns:
       (p_world_a, p_world_b), each (C, 3) in metres.
     """
-    T_world_link = forward_kinematics(robot, q)
-    T = T_world_link[jnp.asarray(capsules.link_index)]  # (C, 4, 4)
+    T = link_poses(robot, q)[jnp.asarray(capsules.link_index)]  # (C, 3, 4)
     R, t = T[:, :3, :3], T[:, :3, 3]
     # Full precision: float32 products on GPUs default to TF32 (see larc_jax.leaf.interval, G1).
     full = jax.lax.Precision.HIGHEST

@@ -92,7 +92,8 @@ from .placement import place
 from ..lazy_jax import jax, jnp, pytree_dataclass
 from ..obstacles import scene_obstacles
 from ..obstacles.polytope import GJK_ITERATIONS
-from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
+from ..model.kinematics import link_poses
+from ..model.robot import Robot, forward_kinematics_np
 
 __all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
            "hull_pair_clearance_np", "hull_points_clearance", "link_upper_excess", "link_upper_excess_np",
@@ -174,7 +175,7 @@ def _part_upper_bounds(robot: Robot, hulls: HullModel, pl, obstacles, margin, pa
     eps = float(jnp.finfo(pl.speed.dtype).eps)
     gdtype = robot.T_parent_joint.dtype
     of = (lambda x: x) if parts is None else (lambda x: jnp.asarray(x)[parts])  # noqa: E731
-    T = forward_kinematics(robot, pl.q_mid.astype(gdtype))[of(jnp.asarray(hulls.link_index))][:, :3, :]  # (P, 3, 4)
+    T = link_poses(robot, pl.q_mid.astype(gdtype))[of(jnp.asarray(hulls.link_index))]  # (P, 3, 4)
     motion_b = motion_radii(of(hulls.motion_a), pl.h_cov, pl.speed)  # eq. 6, the parts' own a_pj
     probes = jnp.einsum("pij,pqj->pqi", T[:, :, :3], of(hulls.probes).astype(gdtype)) + T[:, None, :, 3]
     d = obstacles.nearest_point_distances(probes)  # (P, B)

@@ -68,14 +68,15 @@ P. Curve values (float64).
       joint-space path) within ``b_l + sum_j a_lj E_j`` of that point at ``q^``.
 
 G. Geometry (dtype g).
-  G1. Placement: FK chains ``L_l`` joint transforms (4x4 products, each ``<= 3 u_g |A||B|``
-      entrywise; rotations stay of norm ``1 + O(L u_g)``; XLA's ``sin``/``cos`` are accurate to
-      2 ulp for every finite argument: measured on CPU for ``|x| <= 1e9``, documented for CUDA's
-      libdevice); inputs rounded to g (joint origins, axes, segment ends) count as one more
-      rounding per link. The computed segment ends are within ``K_FK (L_l + 1) u_g R_l`` of the
-      exact ones at ``q^``, where ``R_l`` bounds every coordinate along the chain: the joint
-      offsets' norms, prismatic travel (held ``|q|``, active ``Q_j``) and the farthest segment
-      end. Matrix products use ``Precision.HIGHEST`` (float32 on a GPU is otherwise TF32).
+  G1. Placement: FK chains ``L_l`` joint transforms (:mod:`larc_jax.model.kinematics`: 3x4 affine
+      products, the entries of 4x4 ones with a ``[0, 0, 0, 1]`` row, each an inner product of <= 4
+      terms, in any order within ``gamma_4 |A||B|`` (the constant column counted); rotations stay of
+      norm ``1 + O(L u_g)``; XLA's ``sin``/``cos`` are accurate to 2 ulp for every finite argument:
+      measured on CPU for ``|x| <= 1e9``, documented for CUDA's libdevice); inputs rounded to g (joint
+      origins, axes, segment ends) count as one more rounding per link. The computed segment ends are
+      within ``K_FK (L_l + 1) u_g R_l`` of the exact ones at ``q^``, where ``R_l`` bounds every
+      coordinate along the chain: the joint offsets' norms, prismatic travel (held ``|q|``, active
+      ``Q_j``) and the farthest segment end. Products use ``Precision.HIGHEST`` (on a GPU, not TF32).
   G2. Distance (:mod:`larc_jax.obstacles.geometry`): the computed distance is at most ``(1 + 16 u_g)
       dist + 32 u_g (|p0| + |p1|)``: gaps ``lo - x`` are single subtractions (relative error),
       the squares, sum and square root add ``4 u_g``, the points ``x`` are off the segment by

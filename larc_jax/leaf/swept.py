@@ -92,7 +92,8 @@ from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel
 from ..lazy_jax import jax, jnp, pytree_dataclass
 from ..model.hermite import accel_max, accel_max_np, evaluate, evaluate_np
-from ..model.robot import Robot, forward_kinematics, forward_kinematics_np
+from ..model.kinematics import link_poses
+from ..model.robot import Robot, forward_kinematics_np
 from ..obstacles import scene_obstacles
 from .cascade import Links, combine, polytope_clearance, polytope_clearance_np, select_pairs
 from .interval import evaluate_placed, evaluate_placed_np, rebase_ends
@@ -226,8 +227,8 @@ def swept_placement(robot: Robot, capsules: CapsuleModel, hulls: HullModel | Non
     accel = accel_max(spline, lo, hi) + bounds.accel_slack  # P2'
     q_a, _ = evaluate(spline, a)
     q_b, _ = evaluate(spline, b)
-    T_a = forward_kinematics(robot, q_a.astype(gdtype))
-    T_b = forward_kinematics(robot, q_b.astype(gdtype))
+    T_a = link_poses(robot, q_a.astype(gdtype))
+    T_b = link_poses(robot, q_b.astype(gdtype))
     e_cap = swept_radii(capsules.motion_a, tables.capsule_before, b - a, bounds.tau_s, pl.speed, accel)
     R_cap, t_cap = _ends(T_a, T_b, capsules.link_index)
     finite = (pl.finite & jnp.isfinite(accel).all() & jnp.isfinite(T_a).all() & jnp.isfinite(T_b).all()
@@ -238,7 +239,7 @@ def swept_placement(robot: Robot, capsules: CapsuleModel, hulls: HullModel | Non
         return SweptPlacement(g_cap, R_cap, t_cap, e_cap, jnp.zeros((0, 3, 4), gdtype), jnp.zeros((0, 2, 3, 3), gdtype),
                               jnp.zeros((0, 2, 3), gdtype), P, P)
     links = jnp.asarray(hulls.link_index)
-    T_mid = forward_kinematics(robot, pl.q_mid.astype(gdtype))[links][:, :3, :]
+    T_mid = link_poses(robot, pl.q_mid.astype(gdtype))[links]
     R, t = _ends(T_a, T_b, hulls.link_index)
     return SweptPlacement(g_cap, R_cap, t_cap, e_cap, T_mid, R, t,
                           motion_radii(hulls.motion_a, pl.h_cov, pl.speed),  # eq. 6
