@@ -191,6 +191,21 @@ def section_paired(robot, capsules, trajs, scenes, enclosure: str, repeats: int 
             "fine_median_ms": statistics.median(fine_ms), "median_fine_over_larc": statistics.median(ratios)}
 
 
+def _release_executables() -> None:
+    """Drop JAX's in-memory executables between sections (each section warms its own up first):
+    every compiled CPU executable holds ~100 memory mappings, and the Stage B sections' programs
+    alone hold ~24,000 (both enclosures, every bucket, one trajectory per call), so one process
+    running every section reached ``vm.max_map_count`` (65,530) in the stream section, where LLVM
+    fails with "Cannot allocate memory" and the process dies (as ``tests/conftest.py`` and
+    ``experiments.timing`` guard against)."""
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+
+
 def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
     """XLA cost analysis of the interval kernel on one full bucket of Stage B intervals."""
     import jax
@@ -405,6 +420,7 @@ def main(argv=None) -> int:
     if args.stageB_only:
         return finish()
     larc_s = out["stageB"][ENCLOSURE]["larc"]["warm_s"]
+    _release_executables()
     out["kernel"] = section_kernel(robot, capsules, trajs, scenes, peak)
     out["kernel"]["achieved_gflops_larc"] = (  # intervals run through the broad-phase kernel
         out["kernel"]["broad_phase"]["flops_per_interval"] * out["stageB"][ENCLOSURE]["larc"]["intervals_per_s"] / 1e9)
@@ -416,6 +432,7 @@ def main(argv=None) -> int:
     if not args.skip_audit:
         out["audit"] = section_audit(larc_s)
         checkpoint()
+    _release_executables()
     out["stream"] = section_stream(robot, capsules, trajs, scenes, args.stream_n)
     checkpoint()
     ns = [int(x) for x in args.rss_n.split(",") if x.strip()]

@@ -4,8 +4,11 @@
 pose ``T_world_link`` (the bottom row of a rigid pose is always ``[0, 0, 0, 1]``). It chains the
 joints as :func:`larc_jax.model.robot.forward_kinematics` does (the same Rodrigues rotation, the
 same parent-then-origin-then-motion order), but on 3×3 rotations and 3-vectors instead of 4×4
-products: per joint two 3×3 products and one 3×3-by-vector product, no arithmetic on the constant
-row and column. On the capsule test of Stage B (4,096 intervals a call, this 2-core CPU) that took
+products: per joint one 3×3-by-3×4 product (the parent's rotation times the joint origin's
+rotation and offset together) and, for a revolute joint, one 3×3 product, no arithmetic on the
+constant row. (The origin as two products, rotation and offset apart, was as fast but one more
+dot operation per joint, and every compiled program 15-20 % more memory mappings, measured: a
+process that compiles many shapes reaches ``vm.max_map_count`` sooner.) On the capsule test of Stage B (4,096 intervals a call, this 2-core CPU) that took
 the midpoint configuration, forward kinematics and capsule segments from 3.9-4.1 ms to 1.9-2.6 ms
 (measured while developing, ``experiments/bench.py`` has the stage's time); entry by entry on
 scalars (no products) it was slower, 6.8 ms.
@@ -71,9 +74,10 @@ def link_poses(robot: Robot, q: jax.Array) -> jax.Array:
     for i in range(1, robot.n_links):
         parent = robot.parent[i]
         T_origin = robot.T_parent_joint[i].astype(dtype)
-        # The joint frame: the parent's pose times the joint's fixed origin.
-        R_joint = _mm(R_world[parent], T_origin[:3, :3])
-        p_joint = _mm(R_world[parent], T_origin[:3, 3]) + p_world[parent]
+        # The joint frame: the parent's pose times the joint's fixed origin, one 3x3-by-3x4
+        # product (rotation and offset together: one dot operation, not two).
+        T_joint = _mm(R_world[parent], T_origin[:3, :])
+        R_joint, p_joint = T_joint[:, :3], T_joint[:, 3] + p_world[parent]
         jtype = robot.joint_type[i]
         k = robot.q_index[i]
         value = (q[k] if k >= 0 else robot.q_held[i]).astype(dtype)
