@@ -6,12 +6,14 @@ joints as :func:`larc_jax.model.robot.forward_kinematics` does (the same Rodrigu
 same parent-then-origin-then-motion order), but on 3×3 rotations and 3-vectors instead of 4×4
 products: per joint one 3×3-by-3×4 product (the parent's rotation times the joint origin's
 rotation and offset together) and, for a revolute joint, one 3×3 product, no arithmetic on the
-constant row. (The origin as two products, rotation and offset apart, was as fast but one more
-dot operation per joint, and every compiled program 15-20 % more memory mappings, measured: a
-process that compiles many shapes reaches ``vm.max_map_count`` sooner.) On the capsule test of Stage B (4,096 intervals a call, this 2-core CPU) that took
-the midpoint configuration, forward kinematics and capsule segments from 3.9-4.1 ms to 1.9-2.6 ms
-(measured while developing, ``experiments/bench.py`` has the stage's time); entry by entry on
-scalars (no products) it was slower, 6.8 ms.
+constant row. On fine's 4,096-interval capsule call of Stage B (this 2-core CPU, measured while
+developing; ``experiments/bench.py`` has the stage's time), the midpoint configuration, forward
+kinematics and capsule segments took 3.9-4.1 ms with the 4×4 form and 1.7-2.1 ms with this one,
+the whole call 8.3-8.5 ms before and 5.0 ms after. Tried and not kept: the origin as two products
+(rotation and offset apart; 2.0 ms, but one more dot operation per joint, and every compiled
+program held 15-20 % more memory mappings, so a process that compiles many shapes reaches
+``vm.max_map_count`` sooner); elementwise multiply-and-sum instead of products (3.2-3.3 ms);
+entry by entry on scalars (6.8 ms).
 
 Rounding (budget G1 of :mod:`larc_jax.leaf.interval`). The entries computed are the same sums of
 the same products as the 4×4 form's: a 4×4 product with rows ``[0, 0, 0, 1]`` adds terms that
@@ -21,9 +23,10 @@ exact term, in either form. Inner products of n terms are within ``gamma_n = n u
 of their exact value relative to the sum of the terms' magnitudes, *whatever the order of the
 additions* (and a fused multiply-add only removes roundings), so G1's bound per product
 (``gamma_4 |A| |B|`` entrywise, the constant column counted), and with it ``K_FK``, covers this
-form as it covers the 4×4 one. The two forms' results differ in the last bits (XLA orders the sums of
-a 3×3 product differently from a 4×4 one's): ``tests/test_kinematics.py`` bounds the difference
-against the NumPy reference and FK-to-FK by the G1 constant.
+form as it covers the 4×4 one. The two forms' results differ in the last bits (XLA orders the
+sums of a 3×3 product differently from a 4×4 one's): ``tests/test_kinematics.py`` compares this
+kernel with the NumPy reference (1e-12) and the 4×4 form (1e-14, relative to the configuration's
+largest coordinate); ``tests/test_rounding.py`` checks the placement against G1 itself.
 
 :func:`larc_jax.model.robot.forward_kinematics` (4×4, the public function) stays as it is: its
 module is part of the OMPL dataset generator's code fingerprint (``experiments.generate``), which
