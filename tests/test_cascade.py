@@ -13,7 +13,8 @@ from scipy.interpolate import CubicHermiteSpline
 
 import larc_jax as lj
 from larc_jax.leaf.cascade import Links, combine, interval_pairs, interval_pairs_np, select_pairs
-from larc_jax.leaf.interval import rebase_ends, trajectory_rounding
+from larc_jax.leaf.interval import dyadic_ends, rebase_ends, trajectory_rounding
+from larc_jax.leaf.reference import leaf_enclosures
 from larc_jax.enclosure.hull import hull_model
 from larc_jax.enclosure.robot_file import load_robot_file
 from larc_jax.model.hermite import HermiteSpline
@@ -553,31 +554,55 @@ def _spied_screen(monkeypatch):
     return seen
 
 
-def test_screen_changes_no_leaf(dataset, model, larc, monkeypatch):
-    """LARC with the screen (the default) and without it (every interval through steps 2-5) walk
-    the same intervals and write bit-identical leaves: the screen only spares work on intervals
-    that are bisected whatever steps 2-4 find."""
-    import dataclasses
-
+def _no_screen(monkeypatch):
+    """Every interval the capsules fail through steps 2-5, whatever the screen would find."""
     import larc_jax.engine.batch as batch_module
 
-    robot, capsules, _ = model
-    seen = _spied_screen(monkeypatch)
-    screened = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
-    assert sum(int(s.sum()) for s in seen) > 20  # the screen spared steps 2-4 on many intervals
     monkeypatch.setattr(batch_module.Batch, "_hopeless", lambda self, tr, *args: np.zeros(len(tr), bool))
-    whole = lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH)
-    for r in (screened, larc):
-        assert (r.certified == whole.certified).all() and (r.frontier == whole.frontier).all()
-        for f in dataclasses.fields(whole.leaves):
+
+
+def _same_leaves(r, whole):
+    """``r`` walks the intervals ``whole`` walks and takes its decisions; its leaves record the
+    same stages, pairs and guards, and clearances equal to 1e-12 m (a screened leaf keeps step 1's
+    clearance, larc_jax.leaf.cascade "The screen": step 2 computes it again in another program)."""
+    import dataclasses
+
+    assert (r.certified == whole.certified).all() and (r.frontier == whole.frontier).all()
+    for f in dataclasses.fields(whole.leaves):
+        if f.name != "clearance_m":
             np.testing.assert_array_equal(getattr(r.leaves, f.name), getattr(whole.leaves, f.name), err_msg=f.name)
+    np.testing.assert_allclose(r.leaves.clearance_m, whole.leaves.clearance_m, rtol=0, atol=1e-12)
+    passed = whole.leaves.stage > 0  # decided by steps 1-5 alike: bit-identical
+    np.testing.assert_array_equal(r.leaves.clearance_m[passed], whole.leaves.clearance_m[passed])
+
+
+def test_screen_changes_no_decision(dataset, model, larc, monkeypatch):
+    """LARC and fixed-fine with the screen (the default: LARC's from step 1's kernel, fine's from
+    a call of its own) and without it (every interval through steps 2-5) walk the same intervals,
+    take the same decisions and write the same leaves (:func:`_same_leaves`); the screen spared
+    steps 2-4 on many intervals, fine's deepest (failing) leaves included."""
+    robot, capsules, _ = model
+    runs = {}
+    for method in ("larc", "fine"):
+        seen = _spied_screen(monkeypatch)
+        runs[method] = lj.certify(*dataset, robot, capsules, method=method, margin=MARGIN, max_depth=DEPTH)
+        assert sum(int(s.sum()) for s in seen) > 20, method  # the screen spared steps 2-4 on many intervals
+    _no_screen(monkeypatch)
+    for method, r in runs.items():
+        whole = lj.certify(*dataset, robot, capsules, method=method, margin=MARGIN, max_depth=DEPTH)
+        assert (~whole.certified).any()  # failing leaves, where the screen keeps the capsule record
+        _same_leaves(r, whole)
+    _same_leaves(larc, lj.certify(*dataset, robot, capsules, method="larc", margin=MARGIN, max_depth=DEPTH))
 
 
 def test_screened_intervals_fail_the_cascade(dataset, model, monkeypatch):
     """One-sided: every interval of depths 0-5 gets the same verdict from the leaf test with the
-    screen (``may_bisect``) as from the whole cascade; in particular every interval the screen
-    calls hopeless fails steps 2-5, and the screen was asked about some that then passed."""
+    screen, computed in step 1 (``may_bisect``, LARC) or in a call of its own (fine), as from the
+    whole cascade; in particular every interval the screen calls hopeless fails steps 2-5, and
+    the screen was asked about some that then passed. The NumPy reference with the screen and
+    without agrees on the intervals it spared."""
     from larc_jax.engine import batch as B
+    from larc_jax.leaf.cascade import cascade_np
 
     robot, capsules, hulls = model
     trajs, scenes = dataset
@@ -587,14 +612,37 @@ def test_screened_intervals_fail_the_cascade(dataset, model, monkeypatch):
     index = np.concatenate([np.arange(2**d) for d in range(6)])
     traj = np.repeat(np.arange(len(trajs)), len(depth))
     depth, index = np.tile(depth, len(trajs)), np.tile(index, len(trajs))
-    whole = b.evaluate_cascade(traj, depth, index)[2]
-    seen = _spied_screen(monkeypatch)
-    screened = b.evaluate_cascade(traj, depth, index, may_bisect=np.ones(len(traj), bool))[2]
-    hopeless = sum(int(s.sum()) for s in seen)
-    assert hopeless > 50 and sum(len(s) for s in seen) > hopeless  # it spared some, not all
-    np.testing.assert_array_equal(screened.stage > 0, whole.stage > 0)
-    passed = whole.stage == 2
-    np.testing.assert_array_equal(screened.clearance_m[passed], whole.clearance_m[passed])
+    runs = []
+    for may_bisect in (np.ones(len(traj), bool), None):
+        seen = _spied_screen(monkeypatch)
+        runs.append(b.evaluate_cascade(traj, depth, index, may_bisect=may_bisect)[2])
+        hopeless = sum(int(s.sum()) for s in seen)
+        assert hopeless > 50 and sum(len(s) for s in seen) > hopeless  # it spared some, not all
+    with monkeypatch.context() as m:
+        _no_screen(m)
+        whole = b.evaluate_cascade(traj, depth, index)[2]
+    for screened in runs:
+        np.testing.assert_array_equal(screened.stage > 0, whole.stage > 0)
+        passed = whole.stage == 2
+        np.testing.assert_array_equal(screened.clearance_m[passed], whole.clearance_m[passed])
+        excess = lambda r: r.clearance_m - r.guard_m  # noqa: E731
+        np.testing.assert_allclose(excess(screened), excess(whole), rtol=0, atol=1e-12)
+    import larc_jax.leaf.cascade as cascade_module
+
+    steps = []  # one entry per reference call that reached step 3 (not screened)
+    real = cascade_module.select_pairs
+    monkeypatch.setattr(cascade_module, "select_pairs", lambda *a: steps.append(1) or real(*a))
+    enc, screened_here = leaf_enclosures(robot, capsules, "hull"), 0
+    for i in np.flatnonzero(~(whole.stage > 0) & np.isfinite(whole.clearance_m))[::41][:8]:
+        t = trajs[traj[i]]
+        a, bb = (float(x) for x in dyadic_ends(t.t[0], t.t[-1], depth[i], index[i]))
+        args = (robot, enc.capsules, enc.hulls, enc.links, t, scenes[traj[i]], a, bb, MARGIN, bounds[traj[i]])
+        before = len(steps)
+        got = cascade_np(*args)
+        screened_here += len(steps) == before
+        full = cascade_np(*args, screen=False)
+        assert got[4] == full[4] == 0 and abs((got[0] - got[1]) - (full[0] - full[1])) <= 1e-12, (i, got, full)
+    assert screened_here >= 2
 
 
 def test_larc_compiles_one_step_one(dataset, model, monkeypatch):

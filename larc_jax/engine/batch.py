@@ -189,10 +189,12 @@ class Batch:
         (:mod:`larc_jax.engine.cull`), such an interval meeting more items than the widest list
         fails untested (``g`` NaN) above the deepest culled nodes (its children meet their own
         lists), below them when the capsules fail on a pair computed exactly (no recomputation, no
-        later stage); it is bisected, and nothing is certified that a test did not prove. Without the
-        swept stage, one the hull stage surely fails (:func:`~larc_jax.leaf.cascade.link_upper_excess`,
-        computed in the capsule stage's kernel: :func:`~larc_jax.leaf.cascade.screened_interval`) keeps
-        its capsule record: steps 2-4 of the cascade would not change its verdict."""
+        later stage); it is bisected, and nothing is certified that a test did not prove. Given
+        ``may_bisect`` in an unculled batch, step 1 computes the screen too
+        (:func:`~larc_jax.leaf.cascade.screened_interval`). Without the swept stage, an interval the
+        screen proves the hull stage fails (:func:`~larc_jax.leaf.cascade.link_upper_excess`, at every
+        depth, every method) keeps its capsule record: what steps 2-5 would record but for the
+        rounding of step 1's clearances (larc_jax.leaf.cascade, "The screen")."""
         return self._leaf_test(traj, depth, index, on_chunk, on_compile, cascade=True, may_bisect=may_bisect)
 
     def selection(self, traj, depth, index) -> list[CullPart]:
@@ -233,11 +235,10 @@ class Batch:
             np.ones(len(traj), bool)
         g[untested] = np.nan
         test = np.flatnonzero(~untested) if width else np.zeros(0, np.int64)
-        # The screen (below; only a verdict needed: the hull stage alone decides it) comes from step
-        # 1's own placement, in an unculled batch (a culled one would compile it for every width).
+        # The screen (below, larc_jax.leaf.cascade: the hull stage alone decides the leaf) comes from
+        # step 1's own placement for LARC in an unculled batch, at every level (a culled batch would
+        # compile it for every width); fixed-fine screens its open intervals in a call of their own.
         hull_last = cascade and self.hulls is not None and self.swept is None  # the hull stage, then no other
-        screen_on = hull_last and np.any(may_bisect)
-        # LARC's deepest level too (its screen unused): one compiled step 1 for every level, not two.
         screened = hull_last and may_bisect is not None and self.cull is None
         upper = np.full(len(traj), np.nan)  # the screen's excess where step 1 gave it (NaN: not given)
         if len(test):  # every interval (no untested one): the arrays as they are, not copies
@@ -269,10 +270,9 @@ class Batch:
             self_test = self_record(gs, gds, c1.astype(np.int64), c2.astype(np.int64))
         record = box_record(g, guard, cap.astype(np.int64), box.astype(np.int64), Stage.CAPSULE)
         open_ = np.flatnonzero(needs_hull(record, self_test) & ~defer)
-        screen = open_[np.asarray(may_bisect)[open_]] if screen_on else open_[:0]
-        if len(screen):
-            open_ = np.setdiff1d(open_, screen[self._hopeless(traj[screen], ar[screen], br[screen], _rows(sel, screen),
-                                                              cap[screen], box[screen], upper[screen], on_compile)])
+        if hull_last and len(open_):  # where steps 2-4 cannot pass the leaf, its capsule record stands
+            open_ = open_[~self._hopeless(traj[open_], ar[open_], br[open_], _rows(sel, open_), cap[open_],
+                                          box[open_], upper[open_], on_compile)]
         if cascade and len(open_) and (self.hulls is not None or self.swept is not None):
             later = self._later_stages if self.cull is None else self._narrowed_stages
             record = record.put(open_, later(traj[open_], a[open_], b[open_], _rows(sel, open_), on_compile))

@@ -57,19 +57,30 @@ Order of work (all of it deterministic, so every scheduler takes the same decisi
 5. per (l, k) the excess is ``max(min_capsules, min_parts)`` (parts only where tested); the
    interval's is the minimum over (l, k); it passes ("hull" stage) when that is > 0.
 
-A screen may come before step 2 where only the verdict matters (LARC above its deepest level: a
-failing interval is bisected, its record dropped): :func:`link_upper_excess` computes step 2's
-upper bounds for the one (link, box) pair the capsule stage failed on; if any of the link's parts
-cannot pass, step 3 would not try that pair and step 5 would fail the interval, so steps 2-4 are
-skipped and the capsule record stands (on the Stage B set, 160 trajectories to depth 9, it spared
-13,251 of the 23,515 intervals that reached step 2, and cut step 4's triples from 18,168 to 9,793).
-In an unculled batch LARC computes the screen inside step 1's kernel (:func:`screened_interval`):
-from step 1's own placement and speed maxima, for the parts of the recorded link only (on the
-PIPER at most 2 of 11 parts), so a screened interval costs step 1 plus a few probes, not a second
-placement of every part (Stage B's warm whole-set cascade, best of 7 calls on 2 CPU cores: 0.60 s
-to 0.52 s, the leaves bit-identical). An interval whose recorded pair the broad phase could not
-prove (evaluated again on every pair), and a culled batch's intervals (one kernel per item-list
-width would compile it again), are screened by their own call (:func:`link_upper_excess`).
+The screen comes before step 2, on every interval the capsules fail, at every depth and in
+every scheduler (:meth:`~larc_jax.engine.batch.Batch.evaluate_cascade`, :func:`cascade_np`):
+:func:`link_upper_excess` computes step 2's upper bounds ``U`` for the parts of the one link
+``l*`` whose capsule ``c*`` the capsule stage recorded, against the recorded item ``k*``. If
+``min_p (U_p - G_p) <= 0`` (or NaN), steps 2-4 are skipped and the capsule record stands.
+Why that is the record steps 2-5 would write: Step 3 tries ``(l*, k*)`` only if every part of
+``l*`` could pass, so it does not; step 5 gives that pair its capsule excess ``e*``, the least
+capsule excess of the interval, and every other pair at least its own capsule excess
+(``max(capsules, parts)``), which is ``>= e*``; so step 5's minimum is ``e*`` on ``(l*, k*)``
+with capsule ``c*``: the capsule record. Three exceptions, none of them able to pass a leaf the
+cascade fails: step 2 computes the capsule clearances again (every pair exact, in another
+program) and may differ from step 1's in the last bit (on the Stage B set 469 of LARC's 13,976
+leaves differ, by at most 1.6e-16 m), so a leaf at ``e* <= 0`` by a last bit fails where steps
+2-5 might pass it; ties between pairs may pick another pair of the same excess; a NaN hull
+clearance on another tried pair would have recorded NaN (the leaf fails either way). On the
+Stage B set (160 trajectories to depth 9) the screen spares steps 2-4 on 7,082 of LARC's 7,908
+deepest-level intervals that reach it, and on 7,082 of fixed-fine's 8,752.
+LARC computes the screen inside step 1's kernel (:func:`screened_interval`) in an unculled
+batch: from step 1's own placement and speed maxima, for the parts of the recorded link only
+(on the PIPER at most 2 of 11 parts), so a screened interval costs step 1 plus a few probes,
+not a second placement of every part. Fixed-fine, whose capsules fail few of its intervals
+(Stage B: 8,752 of 81,920), runs the plain step 1 and screens those in a call of their own (:func:`link_upper_excess`), as does an
+interval whose recorded pair the broad phase could not prove (evaluated again on every pair)
+and a culled batch's intervals (one kernel per item-list width would compile it again).
 
 :func:`combine` is step 5 (NumPy, shared by every scheduler); :func:`cascade_np` runs steps 1-5
 on one interval with the NumPy float64 references (:func:`interval_pairs_np`,
@@ -194,9 +205,9 @@ def link_upper_excess(robot: Robot, capsules: CapsuleModel, hulls: HullModel, sp
     Where the capsule stage fails an interval on (capsule c, item k), the link ``l`` of ``c`` has
     capsule excess ``<= 0`` against ``k``. If this value (the parts of ``l``) is ``<= 0`` or NaN,
     step 3 does not try ``(l, k)`` and step 5 gives it its capsule excess: the interval fails the
-    hull stage whatever steps 2-4 compute elsewhere. LARC bisects such an interval above its
-    deepest level without running them (:meth:`~larc_jax.engine.batch.Batch.evaluate_cascade`);
-    it computes the same numbers as step 2 (one placement, :func:`_part_upper_bounds`)."""
+    hull stage whatever steps 2-4 compute elsewhere, and keeps its capsule record without
+    running them (module docstring, "The screen"); it computes the same numbers as step 2 (one
+    placement, :func:`_part_upper_bounds`)."""
     return _placed_upper_excess(robot, hulls, place(robot, capsules, spline, a, b, bounds), item, margin, bounds,
                                 on_link)
 
@@ -458,10 +469,12 @@ def combine(links: Links, g_capsule: np.ndarray, guard_capsule: np.ndarray, trie
 
 
 def cascade_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, links: Links, traj, obstacles, a: float,
-               b: float, margin: float, bounds, ev=None):
+               b: float, margin: float, bounds, ev=None, screen: bool = True):
     """Steps 1-5 on one leaf ``[a, b]`` (the trajectory's own time axis) with the NumPy
     references: ``(g, guard, capsule, box, stage)``; ``ev``: the leaf's capsule test
-    (:func:`~larc_jax.leaf.interval.evaluate_interval_np`), computed if None."""
+    (:func:`~larc_jax.leaf.interval.evaluate_interval_np`), computed if None; ``screen``: the
+    screen first (module docstring), as every scheduler runs it (False: steps 2-5 whatever it
+    finds, for the tests that compare the two)."""
     obstacles = scene_obstacles(obstacles)
     ev = ev if ev is not None else evaluate_interval_np(robot, capsules, traj, obstacles, a, b, margin, bounds)
     if ev.g > ev.guard or math.isnan(ev.g):
@@ -469,6 +482,9 @@ def cascade_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel, links: Li
     d = interval_pairs_np(robot, capsules, hulls, traj, obstacles, a, b, margin, bounds, ev)
     G_c = np.asarray(bounds.guard_m, np.float64)
     G_p = np.asarray(bounds.hull_guard_m, np.float64)
+    on_link = links.of_part == links.of_capsule[ev.capsule]  # the screen: link_upper_excess_np's value
+    if screen and not np.min(np.where(on_link, d.g_upper[:, ev.box] - G_p, np.inf)) > 0:  # NaN: hopeless too
+        return ev.g, ev.guard, ev.capsule, ev.box, 0
     tried, triples = select_pairs(links, (d.g_capsule - G_c[:, None])[None], (d.g_upper - G_p[:, None])[None])
     guard_hull = G_p[triples[:, 1]] if len(triples) else np.zeros(0)
     g_hull = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], obstacles.take(k), d.motion_b[p], margin, gd)
