@@ -601,6 +601,7 @@ def test_screened_intervals_fail_the_cascade(dataset, model, monkeypatch):
     whole cascade; in particular every interval the screen calls hopeless fails steps 2-5, and
     the screen was asked about some that then passed. The NumPy reference with the screen and
     without agrees on the intervals it spared."""
+    import larc_jax.leaf.cascade as cascade_module
     from larc_jax.engine import batch as B
     from larc_jax.leaf.cascade import cascade_np
 
@@ -627,8 +628,6 @@ def test_screened_intervals_fail_the_cascade(dataset, model, monkeypatch):
         np.testing.assert_array_equal(screened.clearance_m[passed], whole.clearance_m[passed])
         excess = lambda r: r.clearance_m - r.guard_m  # noqa: E731
         np.testing.assert_allclose(excess(screened), excess(whole), rtol=0, atol=1e-12)
-    import larc_jax.leaf.cascade as cascade_module
-
     steps = []  # one entry per reference call that reached step 3 (not screened)
     real = cascade_module.select_pairs
     monkeypatch.setattr(cascade_module, "select_pairs", lambda *a: steps.append(1) or real(*a))

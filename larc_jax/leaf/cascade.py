@@ -78,9 +78,10 @@ LARC computes the screen inside step 1's kernel (:func:`screened_interval`) in a
 batch: from step 1's own placement and speed maxima, for the parts of the recorded link only
 (on the PIPER at most 2 of 11 parts), so a screened interval costs step 1 plus a few probes,
 not a second placement of every part. Fixed-fine, whose capsules fail few of its intervals
-(Stage B: 8,752 of 81,920), runs the plain step 1 and screens those in a call of their own (:func:`link_upper_excess`), as does an
-interval whose recorded pair the broad phase could not prove (evaluated again on every pair)
-and a culled batch's intervals (one kernel per item-list width would compile it again).
+(Stage B: 8,752 of 81,920), runs the plain step 1 and screens those in a call of their own
+(:func:`link_upper_excess`; it places them again, and costs on Stage B about the time it spares),
+as does an interval whose recorded pair the broad phase could not prove (evaluated again on
+every pair) and a culled batch's intervals (one kernel per item-list width would compile it again).
 
 :func:`combine` is step 5 (NumPy, shared by every scheduler); :func:`cascade_np` runs steps 1-5
 on one interval with the NumPy float64 references (:func:`interval_pairs_np`,
