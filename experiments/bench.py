@@ -17,11 +17,16 @@ Sections (each printed and written into the JSON):
 
 * ``stageB`` — the 160 committed Stage B trajectories with their scenes, for the paper's capsule
   test and the default hull cascade (``enclosure="hull"``): LARC and fixed-fine whole-dataset
-  warm times (median of 3 warm calls), interval evaluations per second, and *real* capsule–box
-  pairs per second (each evaluated interval counts its capsules × the real boxes of its scene;
-  padded or masked boxes do not count); compile time (first call − warm call) reported
-  separately; and the paper's paired protocol, one trajectory per call (:func:`section_paired`):
-  the median over trajectories of fine / LARC.
+  warm times (:data:`WARM_ROUNDS` rounds after a first call each and :data:`SETTLE_ROUNDS`
+  untimed ones, the two methods' order alternating from round to round, so that a slow spell of
+  the machine falls on both; each method's median), interval evaluations per second, and *real* capsule–box pairs per second
+  (each evaluated interval counts its capsules × the real boxes of its scene; padded or masked
+  boxes do not count); compile time (first call − warm call) reported separately; the
+  intervals the capsule test leaves open (every evaluated interval it does not pass: the only
+  ones the cascade's later stages can cost anything); the paper's paired protocol, one
+  trajectory per call (:func:`section_paired`): the median over trajectories of fine / LARC;
+  and the floor of such a call (:func:`section_floor`): one interval per trajectory
+  (``method="coarse"``, ``coarse_depth=0``), what a call costs whatever it evaluates.
 * ``coldstart`` — ``larc certify`` of the README example as a fresh process, with an empty and
   a warm compilation cache, and a wrong option's refusal (:mod:`experiments.bench_coldstart`).
 * ``manifest`` — ``larc certify --manifest`` of ``--manifest-n`` rows cycling through the
@@ -30,7 +35,10 @@ Sections (each printed and written into the JSON):
   measured alone afterwards, the time to read one row's trajectory file, with its share of
   that wall (:func:`_read_ms_per_row`).
 * ``kernel`` — XLA's cost analysis of the compiled interval kernel at the largest bucket on the
-  Stage B scenes: flops and bytes accessed per interval, against the machine's nominal peak.
+  Stage B scenes: flops and bytes accessed per interval, against the machine's nominal peak; and
+  the kernel alone timed on that bucket (best of :data:`KERNEL_REPEATS`): its real capsule–box
+  pairs per second and GFLOP/s, beside the whole-set figures that add the host's work and the
+  smaller buckets of a frontier.
 * ``reference`` — the NumPy float64 reference (the paper's Algorithm 1) on the same
   trajectories: ratio reference / LARC (``--skip-reference`` leaves it out).
 * ``audit`` — the FCL mesh audit at 250 Hz (``experiments.audit``, 2 worker processes) on the
@@ -83,6 +91,15 @@ ENCLOSURES = ("capsules", "hull")
 """The Stage B section's: the paper's capsule test, and the default hull cascade."""
 PAIRED_REPEATS = 3
 """Timed calls per trajectory and method in the paired section."""
+KERNEL_REPEATS = 20
+"""Timed calls of the compiled kernel on one full bucket in the kernel section (the best is kept)."""
+WARM_ROUNDS = 5
+"""Timed rounds of the whole-set calls (each round one call per method, the order alternating)."""
+SETTLE_ROUNDS = 2
+"""Untimed rounds before them: on this machine the two or three calls after the first (compiling)
+one of a whole-set call ran up to twice as long as later ones (0.13-0.24 s against 0.08-0.09 s
+for LARC's capsule test, measured with and without a pause of 8 s after the first call: the count
+of calls matters, not the time), and a median of five rounds that start there carries it."""
 MAX_CALL_N = 10_000
 """Largest N of the RSS section measured as one ``certify`` call (module docstring)."""
 
@@ -123,10 +140,20 @@ def _timed(fn):
     return out, time.perf_counter() - start
 
 
-def _warm(fn, repeats: int = 3):
-    first, t_first = _timed(fn)
-    times = [_timed(fn)[1] for _ in range(repeats)]
-    return first, t_first, statistics.median(times)
+def _warm_pair(calls: dict, rounds: int = WARM_ROUNDS) -> dict:
+    """``{name: (first result, first call s, median warm s, warm s of every round)}`` of the
+    zero-argument ``calls``: a first call each, :data:`SETTLE_ROUNDS` untimed rounds, then
+    ``rounds`` timed rounds of one call each, the order reversed every other round (the module
+    docstring's ``stageB``)."""
+    names = list(calls)
+    first = {m: _timed(calls[m]) for m in names}
+    times = {m: [] for m in names}
+    for r in range(SETTLE_ROUNDS + rounds):
+        for m in (names if r % 2 == 0 else names[::-1]):
+            t = _timed(calls[m])[1]
+            if r >= SETTLE_ROUNDS:
+                times[m].append(t)
+    return {m: (first[m][0], first[m][1], statistics.median(times[m]), times[m]) for m in names}
 
 
 def real_pairs(result, capsules, scenes) -> int:
@@ -146,17 +173,28 @@ def decisions_sha256(result) -> str:
     return h.hexdigest()
 
 
+def capsule_open(result) -> int:
+    """Evaluated intervals the capsule test leaves open: all but the leaves it passed (an interval
+    the capsule test passes is a leaf; every other one went on to the cascade's later stages or
+    was bisected or failed)."""
+    from larc_jax.leaf.record import Stage
+
+    return int(result.evaluations.sum()) - int((result.leaves.stage == Stage.CAPSULE).sum())
+
+
 def section_stageB(robot, capsules, trajs, scenes, enclosure: str, paired: bool = True) -> dict:
     from larc_jax import certify
 
-    out = {"n_trajectories": len(trajs), "enclosure": enclosure}
-    for method in ("larc", "fine"):
-        res, t_first, t_warm = _warm(lambda: certify(trajs, scenes, robot, capsules, method=method, enclosure=enclosure))
+    out = {"n_trajectories": len(trajs), "enclosure": enclosure, "warm_rounds": WARM_ROUNDS}
+    timed = _warm_pair({m: (lambda m=m: certify(trajs, scenes, robot, capsules, method=m, enclosure=enclosure))
+                        for m in ("larc", "fine")})
+    for method, (res, t_first, t_warm, rounds) in timed.items():
         evals = int(res.evaluations.sum())
         pairs = real_pairs(res, capsules, scenes)
         out[method] = {
             "certified": int(res.certified.sum()), "evaluations": evals, "real_pairs": pairs,
-            "first_call_s": t_first, "warm_s": t_warm, "compile_s": max(0.0, t_first - t_warm),
+            "capsule_open": capsule_open(res),
+            "first_call_s": t_first, "warm_s": t_warm, "warm_rounds_s": rounds, "compile_s": max(0.0, t_first - t_warm),
             "intervals_per_s": evals / t_warm, "pairs_per_s": pairs / t_warm,
             "decisions_sha256": decisions_sha256(res),
         }
@@ -164,6 +202,7 @@ def section_stageB(robot, capsules, trajs, scenes, enclosure: str, paired: bool 
     out["fine_over_larc_evaluations"] = out["fine"]["evaluations"] / out["larc"]["evaluations"]
     if paired:
         out["paired"] = section_paired(robot, capsules, trajs, scenes, enclosure)
+        out["floor"] = section_floor(robot, capsules, trajs, scenes, enclosure)
     return out
 
 
@@ -189,6 +228,23 @@ def section_paired(robot, capsules, trajs, scenes, enclosure: str, repeats: int 
         ratios.append(fine_ms[-1] / larc_ms[-1])
     return {"n": len(trajs), "repeats": repeats, "larc_median_ms": statistics.median(larc_ms),
             "fine_median_ms": statistics.median(fine_ms), "median_fine_over_larc": statistics.median(ratios)}
+
+
+def section_floor(robot, capsules, trajs, scenes, enclosure: str, n: int = 16) -> dict:
+    """The fixed cost of a one-trajectory call: each of ``n`` trajectories (every tenth) certified
+    alone on one interval (``method="coarse"``, ``coarse_depth=0``: one kernel call of the smallest
+    bucket, and everything ``certify`` does around it), after one untimed call each; the median
+    over trajectories of the best of :data:`PAIRED_REPEATS` calls."""
+    from larc_jax import certify
+
+    picked = list(zip(trajs, scenes))[:: max(1, len(trajs) // n)][:n]
+    ms = []
+    for traj, scene in picked:
+        call = lambda: certify([traj], [scene], robot, capsules, method="coarse", coarse_depth=0,  # noqa: E731
+                               enclosure=enclosure)
+        call()
+        ms.append(1e3 * min(_timed(call)[1] for _ in range(PAIRED_REPEATS)))
+    return {"n": len(picked), "one_interval_median_ms": statistics.median(ms)}
 
 
 def _release_executables() -> None:
@@ -227,14 +283,22 @@ def section_kernel(robot, capsules, trajs, scenes, peak_gflops: float) -> dict:
            "boxes_padded_to": batch.obstacles.n_items, "device": str(jax.devices()[0])}
     # The kernel certify runs (broad phase, larc_jax.leaf.clearance) and the all-pairs one it falls
     # back to for intervals the broad phase cannot prove.
+    args = batch.kernel_args(traj, *batch.endpoints(traj, depth, index))
+    pairs = capsules.n_capsules * int(np.array([s.n_boxes for s in scenes])[traj].sum())  # real pairs (real_pairs)
     for name, broad in (("broad_phase", True), ("all_pairs", False)):
         kernel = evaluate_intervals_broad if broad else evaluate_intervals
         with jax.enable_x64(True):
-            cost = kernel.lower(*batch.kernel_args(traj, *batch.endpoints(traj, depth, index))).compile().cost_analysis()
+            compiled = kernel.lower(*args).compile()
+            cost = compiled.cost_analysis()
+            # The kernel alone on one full bucket, its inputs already prepared: the best of
+            # KERNEL_REPEATS calls (what the whole-set figures' host work and smaller buckets add to).
+            jax.block_until_ready(compiled(*args))
+            best = min(_timed(lambda: jax.block_until_ready(compiled(*args)))[1] for _ in range(KERNEL_REPEATS))
         cost = dict(cost[0] if isinstance(cost, (list, tuple)) else cost)
         flops, nbytes = cost["flops"] / F, cost["bytes accessed"] / F
         out[name] = {"flops_per_interval": flops, "bytes_per_interval": nbytes,
-                     "arithmetic_intensity_flops_per_byte": flops / nbytes}
+                     "arithmetic_intensity_flops_per_byte": flops / nbytes, "bucket_s": best, "repeats": KERNEL_REPEATS,
+                     "kernel_pairs_per_s": pairs / best, "kernel_gflops": flops * F / best / 1e9}
     return out
 
 
@@ -472,7 +536,10 @@ def markdown(out: dict) -> str:
         "|---|" + "---|" * len(cols),
         row("certified", lambda r: f"{r['certified']}"),
         row("interval evaluations", lambda r: f"{r['evaluations']:,}"),
-        row("warm whole-set time", lambda r: f"{r['warm_s']:.3f} s"),
+        row("warm whole-set time" + (f" (median of {runs[encs[0]]['warm_rounds']} alternating rounds)"
+                                     if "warm_rounds" in runs[encs[0]] else ""), lambda r: f"{r['warm_s']:.3f} s"),
+        *([row("left open by the capsule test", lambda r: f"{r['capsule_open']:,} ({100 * r['capsule_open'] / r['evaluations']:.0f} %)")]
+          if all("capsule_open" in r[m] for r, m in cols) else []),
         row("compile time (first call − warm call)", lambda r: f"{r['compile_s']:.2f} s"),
         row("intervals / s", lambda r: f"{r['intervals_per_s']:,.0f}"),
         row("real capsule–box pairs / s", lambda r: f"{r['pairs_per_s']:,.0f}"),
@@ -494,6 +561,19 @@ def markdown(out: dict) -> str:
                     f"per call" if paired else "")
         lines += ["", f"The cascade costs LARC {hull['larc']['warm_s'] / cap['larc']['warm_s']:.2f}× the capsule test "
                       f"on the whole set{per_call} (target ≤ 2×)."]
+        if "capsule_open" in hull["larc"]:
+            extra = {m: hull[m]["warm_s"] - cap[m]["warm_s"] for m in ("larc", "fine")}
+            lines[-1] += (f" Its later stages add {extra['larc']:.3f} s to LARC's warm whole-set time and "
+                          f"{extra['fine']:.3f} s to fine's (the difference of the two warm times): "
+                          f"{1e6 * extra['larc'] / hull['larc']['capsule_open']:.1f} and "
+                          f"{1e6 * extra['fine'] / hull['fine']['capsule_open']:.1f} µs per interval the capsule test "
+                          f"leaves open, {hull['larc']['capsule_open']:,} of LARC's and "
+                          f"{hull['fine']['capsule_open']:,} of fine's.")
+    floors = [f"{runs[e]['floor']['one_interval_median_ms']:.2f} ms ({names[e]})" for e in encs if "floor" in runs[e]]
+    if floors:
+        lines += ["", f"One trajectory certified on one interval (`method=\"coarse\"`, `coarse_depth=0`: one kernel "
+                      f"call, and all `certify` does around it), the floor of a one-trajectory call, median of "
+                      f"{runs[encs[0]]['floor']['n']}: " + ", ".join(floors) + "."]
     if "coldstart" in out:
         c = out["coldstart"]
         lines += ["", f"| `{c['command']}`, a fresh process (median of {c['repeats']}) | wall | target |",
@@ -522,6 +602,12 @@ def markdown(out: dict) -> str:
         f"Achieved {k['achieved_gflops_larc']:.2f} GFLOP/s by XLA's count, {100 * k['fraction_of_peak']:.2f} % of a "
         f"nominal {k['peak_gflops_nominal']:.1f} GFLOP/s float64 peak.",
     ]
+    if "bucket_s" in k["broad_phase"]:
+        b = k["broad_phase"]
+        lines[-1] += (f" The broad-phase kernel alone, on one bucket of {k['bucket_intervals']:,} Stage B intervals "
+                      f"(best of {b['repeats']} calls, inputs prepared): {1e3 * b['bucket_s']:.2f} ms, "
+                      f"{b['kernel_pairs_per_s']:,.0f} real capsule–box pairs/s, {b['kernel_gflops']:.2f} GFLOP/s "
+                      f"({100 * b['kernel_gflops'] / k['peak_gflops_nominal']:.2f} % of that peak).")
     ratios = []
     if "reference" in out:
         ratios.append(f"NumPy reference / LARC: **{out['reference']['reference_over_larc']:.1f}×**")

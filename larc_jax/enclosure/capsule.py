@@ -11,6 +11,7 @@ are derived in :mod:`larc_jax.enclosure.motion`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Iterable
 
 import numpy as np
@@ -75,19 +76,13 @@ class CapsuleModel:
         of the interval lies within ``b`` of the core placed at the midpoint, and a test passed
         with the padded radius ``r' = core + padding_m`` gives ``dist(x(t), box) > rho +
         padding_m``: every link mesh grown by ``padding_m`` clears rho, for any ``padding_m``."""
-        from fractions import Fraction
-
         from ..defaults import check_padding
 
         padding_m = check_padding(padding_m)
         if padding_m == self.padding_m:
             return self
         radius = np.asarray(self.radius, dtype=np.float64)
-        out = (radius - self.padding_m) + padding_m
-        for c, r in enumerate(radius):
-            core = max(Fraction(float(r)) - Fraction(self.padding_m), Fraction(float(r - self.padding_m)))
-            while Fraction(float(out[c])) - Fraction(padding_m) < core:
-                out[c] = np.nextafter(out[c], np.inf)
+        out = np.frombuffer(_padded_radii(radius.tobytes(), float(self.padding_m), padding_m), np.float64).copy()
         if not np.isfinite(out).all():
             raise LarcInputError(f"padding_m {padding_m!r}: gives capsule radii that are not finite")
         return dataclasses.replace(self, radius=out, padding_m=padding_m)
@@ -157,3 +152,22 @@ def capsule_segments_np(robot: Robot, capsules: CapsuleModel, q: np.ndarray):
         out_a.append(T[:3, :3] @ np.asarray(capsules.p_link_a[c], np.float64) + T[:3, 3])
         out_b.append(T[:3, :3] @ np.asarray(capsules.p_link_b[c], np.float64) + T[:3, 3])
     return np.array(out_a), np.array(out_b)
+
+
+@functools.lru_cache(maxsize=64)
+def _padded_radii(radius_bytes: bytes, old_padding_m: float, padding_m: float) -> bytes:
+    """:meth:`CapsuleModel.with_padding`'s radii (float64 bytes) for the radii ``radius_bytes``
+    padded by ``old_padding_m``, re-padded by ``padding_m``: the core ``radius - old_padding_m``
+    plus ``padding_m``, each rounded up until ``radius' - padding_m`` is at least that core in
+    exact rational arithmetic and at least the core as float64 computed it. A pure function of its
+    arguments, kept per process: certifying one trajectory per call would otherwise redo the
+    rational arithmetic every call (a few tenths of a millisecond)."""
+    from fractions import Fraction
+
+    radius = np.frombuffer(radius_bytes, np.float64)
+    out = (radius - old_padding_m) + padding_m
+    for c, r in enumerate(radius):
+        core = max(Fraction(float(r)) - Fraction(old_padding_m), Fraction(float(r - old_padding_m)))
+        while Fraction(float(out[c])) - Fraction(padding_m) < core:
+            out[c] = np.nextafter(out[c], np.inf)
+    return out.tobytes()

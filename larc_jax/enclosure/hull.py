@@ -404,17 +404,37 @@ def _geometry_hashes(robot: Robot) -> tuple:
     :func:`~larc_jax.enclosure.meshes.robot_urdf_model`) and of every collision mesh's bytes as
     they are now (:func:`~larc_jax.model.urdf.current_sha256`: hashed again whenever the file's
     status changed): any change of content rebuilds the hulls, whatever the file's size and
-    modification time."""
-    from ..model.urdf import current_sha256, resolve_uri
+    modification time.
 
-    model = robot_urdf_model(robot)  # also refuses a missing mesh, naming the link
-    hashes = [robot.urdf_sha256]
-    for link in model.links:
-        for col in link.collisions:
-            if col.geometry is not None and col.geometry.mesh is not None:
-                path = resolve_uri(col.geometry.mesh.filename, Path(robot.urdf_path), dict(robot.package_dirs))
-                hashes.append((str(path), current_sha256(path)))
-    return tuple(hashes)
+    The mesh paths are a function of the URDF's bytes (``urdf_sha256``), its path and the
+    package folders alone (:func:`~larc_jax.model.urdf.resolve_uri` reads no file), so they are
+    kept per process under those (:func:`_mesh_paths`); every call still hashes the URDF and
+    every mesh as they are now. Where that finds the URDF changed or a file unreadable, the full
+    check runs and raises its error naming the file and the link."""
+    from ..model.urdf import current_sha256
+
+    paths = _mesh_paths(str(robot.urdf_path), robot.urdf_sha256, tuple(robot.package_dirs))
+    try:
+        fresh = current_sha256(robot.urdf_path, "URDF file") == robot.urdf_sha256
+        meshes = tuple((p, current_sha256(p)) for p in paths) if fresh else None
+    except LarcInputError:
+        meshes = None
+    if meshes is None:
+        robot_urdf_model(robot)  # raises the error naming the file (and the link, for a missing mesh)
+        meshes = tuple((p, current_sha256(p)) for p in paths)
+    return (robot.urdf_sha256,) + meshes
+
+
+@functools.lru_cache(maxsize=16)
+def _mesh_paths(urdf_path: str, urdf_sha256: str, package_dirs: tuple) -> tuple[str, ...]:
+    """The collision meshes' paths of the URDF with these bytes at this path with these package
+    folders, in the URDF's order (:func:`_geometry_hashes`)."""
+    from ..model.urdf import load_urdf_model, resolve_uri
+
+    model = load_urdf_model(urdf_path, dict(package_dirs), sha256=urdf_sha256)  # refuses a missing mesh
+    return tuple(str(resolve_uri(col.geometry.mesh.filename, Path(urdf_path), dict(package_dirs)))
+                 for link in model.links for col in link.collisions
+                 if col.geometry is not None and col.geometry.mesh is not None)
 
 
 def _robot_content(robot: Robot) -> str:

@@ -248,10 +248,11 @@ def _chain_terms(robot: Robot, link_index, end_norms):
     adds to it (G1)."""
     T_pj = np.asarray(robot.T_parent_joint, np.float64)
     held = np.asarray(robot.q_held, np.float64)
+    offset = [float(np.linalg.norm(T[:3, 3])) for T in T_pj]  # each joint's once: the same bits as per chain
     lengths, fixed, prismatic = [], [], []
     for e, li in enumerate(link_index):
         chain = robot.ancestors(li)[1:]
-        r = float(end_norms[e]) + sum(float(np.linalg.norm(T_pj[i][:3, 3])) for i in chain)
+        r = float(end_norms[e]) + sum(offset[i] for i in chain)
         active = []
         for i in chain:
             if robot.joint_type[i] == JointType.PRISMATIC:
