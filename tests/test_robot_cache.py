@@ -210,6 +210,31 @@ def test_a_mesh_rewritten_during_the_hull_build_is_built_again(kept_in, piper_di
     assert len(list((kept_in / "hull_parts").glob("*.npz"))) == 1 and not hull._CACHE
 
 
+def test_the_hulls_freshness_check_refuses_a_changed_urdf_and_a_missing_mesh(piper_dir, tmp_path, monkeypatch):
+    """hull_model keeps the meshes' paths per process (enclosure/hull.py, _geometry_hashes), yet
+    every call still checks the files: a URDF edited after the robot was loaded, and a mesh
+    removed, are refused with the full check's errors; the restored URDF is served again."""
+    import shutil
+
+    from larc_jax.enclosure import hull
+
+    desc = tmp_path / "piper_description"
+    shutil.copytree(piper_dir, desc)
+    urdf = desc / "urdf" / "piper_description.urdf"
+    robot = load_robot(urdf)
+    monkeypatch.setattr(hull, "_CACHE", {})
+    built = hull.hull_model(robot, (), 0.001)
+    original = urdf.read_bytes()
+    urdf.write_bytes(original + b"<!-- edited -->\n")
+    with pytest.raises(LarcInputError, match="the URDF changed after the robot was loaded"):
+        hull.hull_model(robot, (), 0.001)
+    urdf.write_bytes(original)
+    assert hull.hull_model(robot, (), 0.001) is built
+    (desc / "meshes" / "link2.STL").unlink()
+    with pytest.raises(LarcInputError, match="link 'link2' collision mesh .* does not exist"):
+        hull.hull_model(robot, (), 0.001)
+
+
 def _cli_imports(args: list[str], cache: Path) -> tuple[int, str]:
     code = ("import sys\nfrom larc_jax.drivers.cli import main\nrc = main(%r)\n"
             "print('RC', rc, 'jax' in sys.modules)\n") % (args,)
