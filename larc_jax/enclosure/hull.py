@@ -406,11 +406,10 @@ def _geometry_hashes(robot: Robot) -> tuple:
     status changed): any change of content rebuilds the hulls, whatever the file's size and
     modification time.
 
-    The mesh paths are a function of the URDF's bytes (``urdf_sha256``), its path and the
-    package folders alone (:func:`~larc_jax.model.urdf.resolve_uri` reads no file), so they are
-    kept per process under those (:func:`_mesh_paths`); every call still hashes the URDF and
-    every mesh as they are now. Where that finds the URDF changed or a file unreadable, the full
-    check runs and raises its error naming the file and the link."""
+    The mesh paths are a function of the URDF's bytes, path and package folders alone
+    (:func:`~larc_jax.model.urdf.resolve_uri` reads no file), kept per process (:func:`_mesh_paths`);
+    every call still hashes the URDF and every mesh as they are now, and where the URDF changed or
+    a file is unreadable the full check runs and raises its error naming the file and the link."""
     from ..model.urdf import current_sha256
 
     paths = _mesh_paths(str(robot.urdf_path), robot.urdf_sha256, tuple(robot.package_dirs))

@@ -243,9 +243,8 @@ class RoundingBounds:
 
 
 def _chain_terms(robot: Robot, link_index, end_norms):
-    """Per enclosure (on link ``link_index[e]``, farthest point ``end_norms[e]`` from its link
-    origin): chain length L, fixed part of R (m), and the active prismatic joints whose travel
-    adds to it (G1)."""
+    """Per enclosure (on link ``link_index[e]``, farthest point ``end_norms[e]`` from its link origin):
+    chain length L, fixed part of R (m), and the active prismatic joints whose travel adds to it (G1)."""
     T_pj = np.asarray(robot.T_parent_joint, np.float64)
     held = np.asarray(robot.q_held, np.float64)
     offset = [float(np.linalg.norm(T[:3, 3])) for T in T_pj]  # each joint's once: the same bits as per chain
