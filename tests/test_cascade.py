@@ -361,7 +361,7 @@ def test_vertex_classes_evaluate_each_pair_as_the_whole_table(model):
         return call
 
     with jax.enable_x64(True):
-        for kernel in (batch_module.hull_first_axis, batch_module.hull_pairs):
+        for kernel in (batch_module.hull_first_axis, batch_module.hull_early, batch_module.hull_pairs):
             whole = np.asarray(kernel(hulls, part, T, boxes, mb, np.float64(MARGIN)))
             calls.clear()
             split = by_vertex_class(hulls, part, run(kernel), (64, 256, 1024))
@@ -398,11 +398,12 @@ def test_soundness_against_dense_sampling_of_the_hulls(model, dataset, larc):
     assert checked >= 6 and near >= 5
 
 
-def test_two_rounds_decide_as_the_full_search(dataset, model, larc, monkeypatch):
-    """Step 4's first round (the first GJK axis alone) changes no decision: with the full search
-    on every triple (the first round replaced by it) the same intervals are evaluated and every
-    leaf has the same stage; a leaf the first round decided records a bound no larger than the
-    full search's, and still above its guard."""
+def test_rounds_decide_as_the_full_search(dataset, model, larc, monkeypatch):
+    """Step 4's early rounds (the first GJK axis alone; the middle round, which also stops a triple
+    whose upper bound cannot pass) change no decision: with the full search on every triple (the
+    first round replaced by it) the same intervals are evaluated and every leaf has the same stage;
+    a leaf an early round decided records a bound no larger than the full search's, and still above
+    its guard."""
     import larc_jax.engine.batch as batch_module
 
     robot, capsules, _ = model
@@ -420,10 +421,44 @@ def test_two_rounds_decide_as_the_full_search(dataset, model, larc, monkeypatch)
     assert (larc.leaves.clearance_m[capsule] == full.leaves.clearance_m[capsule]).all()
 
 
+def test_hull_rounds_rule():
+    """Named cases of :func:`hull_rounds` with a middle round: a first value above its guard is
+    kept (steps 0); else the middle value is kept (steps 6) when it is above the guard or its upper
+    bound is at or below ``guard - slack``; an upper bound inside the slack, or NaN, goes on to the
+    full search (steps 12); each round is asked only for what the previous one left."""
+    from larc_jax.leaf.rounds import EARLY_ITERATIONS, hull_rounds
+    from larc_jax.obstacles.polytope import GJK_ITERATIONS
+
+    first = np.array([0.5, 0.0, -1.0, -1.0, -1.0, np.nan, -2.0])
+    guard = np.full(7, 0.1)
+    slack = 0.01
+    asked = []
+
+    def early(redo):
+        asked.append(("early", list(redo)))
+        lower = np.array([0.2, -1.0, -1.0, -1.0, np.nan, -1.0])
+        upper = np.array([0.3, 0.09, 0.095, np.nan, np.nan, 0.1 - slack])
+        return lower[: len(redo)], upper[: len(redo)]
+
+    def full(redo):
+        asked.append(("full", list(redo)))
+        return np.full(len(redo), 7.0)
+
+    g, steps = hull_rounds(first, guard, full, early, slack)
+    assert asked == [("early", [1, 2, 3, 4, 5, 6]), ("full", [3, 4, 5])]
+    np.testing.assert_array_equal(g, [0.5, 0.2, -1.0, 7.0, 7.0, 7.0, -1.0])
+    F, E = GJK_ITERATIONS, EARLY_ITERATIONS
+    np.testing.assert_array_equal(steps, [0, E, E, F, F, F, E])
+
+
 def test_two_rounds_rule():
-    """Named cases of :func:`two_rounds`: a first value above its guard is kept; at the guard, below
-    it or NaN, the full search's value replaces it (and only those are asked for)."""
-    from larc_jax.leaf.cascade import two_rounds
+    """Named cases of :func:`hull_rounds` without a middle round (an obstacle kind with no upper
+    bound): a first value above its guard is kept; at the guard, below it or NaN, the full
+    search's value replaces it (and only those are asked for)."""
+    from larc_jax.leaf.rounds import hull_rounds
+
+    def two_rounds(first, guard, full):
+        return hull_rounds(first, guard, full)[0]
 
     first = np.array([0.5, 0.1, 0.2, np.nan, -1.0])
     guard = np.array([0.1, 0.1, 0.3, 0.0, 0.0])
@@ -443,7 +478,7 @@ def test_point_round_rule():
     """Named cases of :func:`point_round`: only triples at or below their guard whose obstacle is
     made of separate points are asked for; each gets the larger of its two values (a lower
     per-point value never lowers it); NaN is kept and never asked for."""
-    from larc_jax.leaf.cascade import point_round
+    from larc_jax.leaf.rounds import point_round
 
     g = np.array([0.5, 0.1, 0.2, np.nan, -1.0, -1.0, 0.0])
     guard = np.array([0.1, 0.1, 0.3, 0.0, 0.0, 0.0, 0.1])

@@ -153,7 +153,8 @@ def test_rotation_and_translation_are_applied():
     R = Rotation.from_euler("z", 90, degrees=True).as_matrix()  # the segment now points along +y
     lo, hi = np.array([-0.01, 0.3, -0.01]), np.array([0.01, 0.4, 0.01])
     for fn in (polytope_box_lower_bound_np, _kernel):
-        assert fn(V, V.mean(0), R, np.array([0.0, 0.1, 0.0]), lo, hi) == pytest.approx(0.1, abs=1e-12)
+        # exact up to the tie term, 2 TIE v_max (v_max = 0.1 here; module docstring)
+        assert fn(V, V.mean(0), R, np.array([0.0, 0.1, 0.0]), lo, hi) == pytest.approx(0.1, abs=1e-9)
 
 
 def test_nan_gives_nan_and_float32_is_close():
@@ -233,7 +234,60 @@ def test_no_winner_gives_no_bound(monkeypatch):
             fn = jax.jit(lambda *a: polytope_box_lower_bound(*a))
             return float(fn(jnp.asarray(V[None]), 0, *(jnp.asarray(x) for x in (V.mean(0), np.eye(3), t, lo, hi))))
 
-    assert bound(np.zeros(3)) == pytest.approx(0.2, abs=1e-12)
-    monkeypatch.setattr(polytope, "first_max", lambda scores: (jnp.zeros((), jnp.int32), jnp.asarray(False)))
+    assert bound(np.zeros(3)) == pytest.approx(0.2, abs=1e-9)  # up to the tie term, 2 TIE v_max
+    monkeypatch.setattr(polytope, "first_max", lambda scores, tol=0.0: (jnp.zeros((), jnp.int32), jnp.asarray(False)))
     assert bound(np.zeros(3)) == -math.inf
     assert math.isnan(bound(np.array([np.nan, 0.0, 0.0])))
+
+
+def test_one_path_upper_bound_and_lower_bounds_below_it(link_hulls):
+    """After every number of steps the kernel and its NumPy reference give the same lower bound and
+    the same upper bound (:func:`polytope_box_bounds`; they take the same path: module docstring,
+    "One path"), and no lower bound, at any number of steps, exceeds any upper bound: a pair
+    stopped because its upper bound is below a threshold could not have passed it. The upper bound
+    is never below python-fcl's distance of the hull mesh less FCL's own tolerance (its GJK stops
+    within about 1e-6 m, above the true distance)."""
+    from larc_jax.obstacles.polytope import GJK_ITERATIONS, polytope_box_bounds, polytope_box_bounds_np
+
+    rng = np.random.default_rng(8)
+    kernel = jax.jit(polytope_box_bounds, static_argnames="iterations")
+    checked = 0
+    for name, V in link_hulls.items():
+        c = (V.min(0) + V.max(0)) / 2
+        for n in range(25):
+            R, t, lo, hi = _placement(rng, V, rng.uniform(-0.01, 0.03))  # some overlap
+            d = _fcl_distance(V, R, t, lo, hi)
+            lbs, ubs = [], []
+            for steps in (*range(GJK_ITERATIONS + 1), 2 * GJK_ITERATIONS):
+                lb, ub = polytope_box_bounds_np(V, c, R, t, lo, hi, steps)
+                assert lb == polytope_box_lower_bound_np(V, c, R, t, lo, hi, steps)
+                assert ub >= max(d, 0.0) - 1e-5, (name, n, steps, ub, d)
+                with jax.enable_x64(True):
+                    out = kernel(jnp.asarray(V[None]), 0, *(jnp.asarray(x) for x in (c, R, t, lo, hi)), iterations=steps)
+                np.testing.assert_allclose([float(out[0]), float(out[1])], [lb, ub], rtol=1e-9, atol=1e-12)
+                lbs.append(lb)
+                ubs.append(ub)
+                checked += 1
+            assert max(lbs) <= min(ubs) + 1e-12, (name, n, max(lbs), min(ubs))
+    assert checked == 14 * 25 * len(link_hulls)
+
+
+@pytest.mark.parametrize("case", ["inside", "first_axis", "nan"])
+def test_upper_bound_named_cases(case):
+    """Named cases of the upper bound: a box holding the polytope gives 0 (the simplex holds the
+    origin) or less than the box's reach; with no step it is the first support point's norm; NaN
+    input gives NaN for both bounds (never stops a search early on NaN: ``NaN <= x`` is false)."""
+    from larc_jax.obstacles.polytope import polytope_box_bounds_np
+
+    V = np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]])
+    c, R, t = V.mean(0), np.eye(3), np.zeros(3)
+    if case == "inside":
+        lb, ub = polytope_box_bounds_np(V, c, R, t, -np.ones(3), np.ones(3))
+        assert lb <= 0 and ub <= 1e-12
+    elif case == "first_axis":
+        lo, hi = np.array([1.0, -1, -1]), np.array([2.0, 1, 1])
+        lb, ub = polytope_box_bounds_np(V, c, R, t, lo, hi, 0)
+        assert lb <= 0.9 <= ub and math.isfinite(ub)
+    else:
+        lb, ub = polytope_box_bounds_np(V, c, R, t, np.array([np.nan, 0, 0]), np.ones(3))
+        assert math.isnan(lb) and math.isnan(ub)

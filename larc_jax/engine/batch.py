@@ -32,7 +32,8 @@ from ..compilation import cached_kernel, tracked_call
 from ..enclosure.capsule import CapsuleModel
 from ..enclosure.hull import HullModel, by_vertex_class
 from ..lazy_jax import jax  # importing this module loads JAX and registers the pytrees (lazy_jax)
-from ..leaf.cascade import Links, PairDetails, combine, exact_enough, point_round, select_pairs, two_rounds
+from ..leaf.cascade import Links, PairDetails, combine, exact_enough, select_pairs
+from ..leaf.rounds import early_stop_slack, hull_rounds, point_round
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import RoundingBounds, dyadic_ends, rebase_ends
 from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
@@ -46,9 +47,9 @@ from ..obstacles import ObstacleSet, stack_scenes
 from .buckets import BUCKETS, CALL_BYTES, CASCADE_BUCKETS, CULLED_BUCKETS, PAIR_BUCKETS, PAIR_BYTES, size_class
 from .cull import CULL_DEPTH, WIDTHS, Cull, CullPart, build_cull, worth_culling
 from .kernels import (batched_interval_pairs, batched_interval_pairs_bounded, evaluate_intervals, evaluate_intervals_broad,
-                      evaluate_intervals_screened, evaluate_intervals_screened_broad, hull_first_axis, hull_pairs,
-                      hull_points, hull_screen, item_margins, self_intervals, swept_capsules, swept_intervals,
-                      swept_parts)
+                      evaluate_intervals_screened, evaluate_intervals_screened_broad, hull_early, hull_first_axis,
+                      hull_pairs, hull_points, hull_screen, item_margins, self_intervals, swept_capsules,
+                      swept_intervals, swept_parts)
 
 __all__ = ["Batch", "prepare", "dyadic_ends"]
 
@@ -379,8 +380,9 @@ class Batch:
         return ~(upper > 0)
 
     def _hull_round(self, kernel, d: PairDetails, sel, triples, on_compile) -> np.ndarray:
-        """One round of step 4 (:data:`hull_first_axis`, :data:`hull_pairs`, :func:`hull_points`) on
-        the ``(interval, part, obstacle)`` triples of the intervals ``sel``, a call per vertex class."""
+        """One round of step 4 (:data:`hull_first_axis`, :data:`hull_early`, :data:`hull_pairs`,
+        :func:`hull_points`) on the ``(interval, part, obstacle)`` triples of the intervals ``sel``, a
+        call per vertex class."""
         call = kernel if len(self.devices) > 1 else cached_kernel(kernel)
         i, p, k = triples.T
         leaves, tree = self._items(sel, i, k)
@@ -418,8 +420,14 @@ class Batch:
             i, p, k = triples.T
             guard_hull = G_p[i, p]
             first = self._hull_round(hull_first_axis, d, sel, triples, on_compile)
-            g_hull = two_rounds(first, guard_hull,
-                                lambda redo: self._hull_round(hull_pairs, d, sel, triples[redo], on_compile))
+
+            def early(redo):
+                out = self._hull_round(hull_early, d, sel, triples[redo], on_compile)
+                return out[:, 0], out[:, 1]
+
+            g_hull, _ = hull_rounds(first, guard_hull,
+                                    lambda redo: self._hull_round(hull_pairs, d, sel, triples[redo], on_compile),
+                                    early if type(self.obstacles).stops_early else None, early_stop_slack(self.dtype))
             g_hull = point_round(g_hull, guard_hull, self._item_set(sel, i, k).separate_points(),
                                  lambda redo: self._hull_round(hull_points, d, sel, triples[redo], on_compile))
         g, guard, cap, box, _ = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)

@@ -13,11 +13,12 @@ import dataclasses
 import functools
 
 from ..lazy_jax import jax, jnp
-from ..leaf.cascade import (hull_pair_clearance, hull_points_clearance, interval_pairs, interval_pairs_bounded,
-                            link_upper_excess, screened_interval)
+from ..leaf.cascade import (hull_pair_bounds, hull_pair_clearance, hull_points_clearance, interval_pairs,
+                            interval_pairs_bounded, link_upper_excess, screened_interval)
 from ..leaf.clearance import BROAD_PHASE_K
 from ..leaf.interval import evaluate_interval
 from ..leaf.placement import place
+from ..leaf.rounds import EARLY_ITERATIONS
 from ..leaf.self_collision import self_stage
 from ..leaf.swept import swept_capsule_clearance, swept_part_clearance, swept_placement
 from ..model.spline_batch import SplineRow
@@ -25,7 +26,7 @@ from ..obstacles.polytope import GJK_ITERATIONS
 
 __all__ = ["evaluate_intervals", "evaluate_intervals_broad", "evaluate_intervals_screened",
            "evaluate_intervals_screened_broad", "item_margins", "batched_interval_pairs",
-           "batched_interval_pairs_bounded", "hull_screen", "hull_first_axis", "hull_pairs",
+           "batched_interval_pairs_bounded", "hull_screen", "hull_first_axis", "hull_early", "hull_pairs",
            "self_intervals", "swept_intervals", "swept_capsules", "swept_parts"]
 
 
@@ -118,20 +119,25 @@ def hull_screen(robot, capsules, hulls, splines, bounds, traj, a, b, items, on_l
     return jax.vmap(one)(traj, a, b, items, on_link)
 
 
-def hull_pairs_kernel(iterations: int):
+def hull_pairs_kernel(iterations: int, upper: bool = False):
     """Step 4 of the cascade on T (part, obstacle) pairs (``items``: one obstacle per pair) with
-    ``iterations`` GJK steps: one jitted function per round, each with its own name (the
-    compilation cache keys kernels by name)."""
+    ``iterations`` GJK steps: (T,) clearances, or with ``upper`` (T, 2) clearances and upper bounds
+    (:func:`~larc_jax.leaf.cascade.hull_pair_bounds`); one jitted function per round, each with its
+    own name (the compilation cache keys kernels by name)."""
 
     def kernel(hulls, part, T_part, items, motion_b, margin):
-        one = functools.partial(hull_pair_clearance, iterations=iterations)
+        if upper:
+            one = lambda *args: jnp.stack(hull_pair_bounds(*args, iterations=iterations))  # noqa: E731
+        else:
+            one = functools.partial(hull_pair_clearance, iterations=iterations)
         return jax.vmap(one, in_axes=(None, 0, 0, 0, 0, None))(hulls, part, T_part, items, motion_b, margin)
 
-    kernel.__name__ = kernel.__qualname__ = f"_hull_pairs_{iterations}"
+    kernel.__name__ = kernel.__qualname__ = f"_hull_pairs_{iterations}" + ("_bounds" if upper else "")
     return jax.jit(kernel)
 
 
 hull_first_axis = hull_pairs_kernel(0)
+hull_early = hull_pairs_kernel(EARLY_ITERATIONS, upper=True)
 hull_pairs = hull_pairs_kernel(GJK_ITERATIONS)
 
 

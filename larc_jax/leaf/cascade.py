@@ -38,22 +38,27 @@ Order of work (all of it deterministic, so every scheduler takes the same decisi
 3. a (link, box) pair is sent to the hull test when its capsules fail (excess ``<= 0``) and
    every one of its parts could still pass (upper bound above its guard): otherwise the hull
    test could not change the outcome, and is skipped (skipping never certifies);
-4. those (interval, part, box) triples (:func:`hull_pair_clearance`) in two rounds
-   (:func:`two_rounds`): first every triple on the GJK search's first axis alone (``iterations=0``,
-   the direction from the part's centre to the obstacle: one support evaluation, about a
-   thirteenth of the search), then the full search (:data:`~larc_jax.obstacles.polytope.GJK_ITERATIONS`
-   steps, from scratch) only on the triples the first round left at or below their guard. Each
-   round is a sound lower bound (skipping the search never certifies anything the first axis did
-   not prove), and the search keeps the largest bound it meets, starting with that same axis, so a
-   triple the first round passes the full search passes too (up to the last bit of the two
-   separately compiled evaluations of that axis; tests/test_cascade.py checks the decisions
-   against the full search on every triple); a triple decided in the first round records the
-   first axis's clearance (on the Stage B set 72.6 % of the triples pass there, of the 80.6 %
-   that pass at all); a third round (:func:`point_round`) takes the triples still at or below
-   their guard whose obstacle is a point cloud's piece and searches each of the piece's points
-   alone (:func:`hull_points_clearance`; R7 of :mod:`larc_jax.obstacles.convex_shapes`: the
-   piece's hull fills the gaps between its points, the points do not); such a triple records the
-   larger of its two sound values (a NaN stays NaN);
+4. those (interval, part, box) triples (:func:`hull_pair_clearance`) in rounds
+   (:func:`~larc_jax.leaf.rounds.hull_rounds`): first every triple on the GJK search's first
+   axis alone (``iterations=0``, the direction from the part's centre to the obstacle: one
+   support evaluation, about a thirteenth of the search); then, where the obstacle kind gives an
+   upper bound (``stops_early``: boxes), :data:`~larc_jax.leaf.rounds.EARLY_ITERATIONS` steps
+   with their upper bound (:func:`hull_pair_bounds`) on the triples the first round left at or
+   below their guard; then the full search (:data:`~larc_jax.obstacles.polytope.GJK_ITERATIONS`
+   steps, from scratch) on those still undecided: at or below the guard, and an upper bound above
+   ``guard - slack`` (:func:`~larc_jax.leaf.rounds.early_stop_slack`). Each round is a sound
+   lower bound (stopping never certifies what the round did not prove); the search keeps the
+   largest bound it meets, starting with that same axis, so a triple an early round passes the
+   full search passes too, and one whose upper bound is at or below its guard less the slack the
+   full search cannot pass (both up to the last bit of separately compiled evaluations;
+   tests/test_cascade.py checks the decisions against the full search on every triple); a triple
+   records the round that decided it (Stage B, LARC: the first axis decides 3,244 of 4,948
+   triples, the middle round 1,593 of the other 1,704, the full search the last 111); a third
+   round (:func:`~larc_jax.leaf.rounds.point_round`) takes the triples still at or below their
+   guard whose obstacle is a point cloud's piece and searches each of the piece's points alone
+   (:func:`hull_points_clearance`; R7 of :mod:`larc_jax.obstacles.convex_shapes`: the piece's
+   hull fills the gaps between its points, the points do not); such a triple records the larger
+   of its two sound values (a NaN stays NaN);
 5. per (l, k) the excess is ``max(min_capsules, min_parts)`` (parts only where tested); the
    interval's is the minimum over (l, k); it passes ("hull" stage) when that is > 0.
 
@@ -71,9 +76,7 @@ cascade fails: step 2 computes the capsule clearances again (every pair exact, i
 program) and may differ from step 1's in the last bit (on the Stage B set 469 of LARC's 13,976
 leaves differ, by at most 1.6e-16 m), so a leaf at ``e* <= 0`` by a last bit fails where steps
 2-5 might pass it; ties between pairs may pick another pair of the same excess; a NaN hull
-clearance on another tried pair would have recorded NaN (the leaf fails either way). On the
-Stage B set (160 trajectories to depth 9) the screen spares steps 2-4 on 7,082 of LARC's 7,908
-deepest-level intervals that reach it, and on 7,082 of fixed-fine's 8,752.
+clearance on another tried pair would have recorded NaN (the leaf fails either way).
 LARC computes the screen inside step 1's kernel (:func:`screened_interval`) in an unculled
 batch: from step 1's own placement and speed maxima, for the parts of the recorded link only
 (on the PIPER at most 2 of 11 parts), so a screened interval costs step 1 plus a few probes,
@@ -101,6 +104,7 @@ from ..enclosure.hull import HullModel
 from .clearance import PAIR_EXACT_K, pair_clearances
 from .interval import capsule_offsets, evaluate_interval, evaluate_interval_np, evaluate_placed, motion_radii
 from .placement import place
+from .rounds import EARLY_ITERATIONS, early_stop_slack, hull_rounds, point_round
 from ..lazy_jax import jax, jnp, pytree_dataclass
 from ..obstacles import scene_obstacles
 from ..obstacles.polytope import GJK_ITERATIONS
@@ -108,9 +112,9 @@ from ..model.kinematics import link_poses
 from ..model.robot import Robot, forward_kinematics_np
 
 __all__ = ["PairDetails", "interval_pairs", "interval_pairs_np", "hull_pair_clearance",
-           "hull_pair_clearance_np", "hull_points_clearance", "link_upper_excess", "link_upper_excess_np",
+           "hull_pair_clearance_np", "hull_pair_bounds", "hull_pair_rounds_np", "hull_points_clearance", "link_upper_excess", "link_upper_excess_np",
            "screened_interval", "interval_pairs_bounded", "exact_enough",
-           "polytope_clearance", "polytope_clearance_np", "Links", "select_pairs", "two_rounds", "point_round",
+           "polytope_clearance", "polytope_clearance_np", "Links", "select_pairs",
            "combine", "cascade_np"]
 
 @pytree_dataclass
@@ -260,6 +264,16 @@ def hull_points_clearance(hulls: HullModel, part, T_part, item, motion_b, margin
     return lb.astype(motion_b.dtype) - _shell(hulls.radius[part], motion_b, margin, eps)
 
 
+def hull_pair_bounds(hulls: HullModel, part, T_part, item, motion_b, margin, iterations: int = EARLY_ITERATIONS):
+    """``(g_h, upper)``: :func:`hull_pair_clearance` and an upper bound of the same clearance up to
+    rounding (the search's last iterate less the same shell; only to stop searching, module
+    docstring step 4), for an obstacle kind that ``stops_early`` (kernel; ``vmap`` it)."""
+    eps = float(jnp.finfo(motion_b.dtype).eps)
+    lb, ub = item.polytope_bounds(hulls.vertices, part, hulls.centre[part], T_part[:, :3], T_part[:, 3], iterations)
+    shell = _shell(hulls.radius[part], motion_b, margin, eps)
+    return lb.astype(motion_b.dtype) - shell, ub.astype(motion_b.dtype) - shell
+
+
 def polytope_clearance(vertices, part, centre, radius, R, t, item, motion, margin,
                        iterations: int = GJK_ITERATIONS) -> jax.Array:
     """``lb(conv(R vertices[part] + t), item) - (radius + motion + rho) (1 + 2 eps)``: the clearance
@@ -312,24 +326,39 @@ def link_upper_excess_np(robot: Robot, capsules: CapsuleModel, hulls: HullModel,
 def hull_pair_clearance_np(hulls: HullModel, part: int, T_part, item, motion_b: float, margin: float,
                            guard: float | None = None) -> float:
     """NumPy float64 reference of :func:`hull_pair_clearance` (``item``: one obstacle); with the
-    triple's ``guard``, what step 4 records (both rounds, :func:`two_rounds`)."""
+    triple's ``guard``, what step 4 records (every round, :func:`hull_pair_rounds_np`)."""
+    if guard is None:
+        return polytope_clearance_np(hulls.vertices[part], hulls.centre[part], float(hulls.radius[part]),
+                                     np.asarray(T_part, np.float64)[:, :3], np.asarray(T_part, np.float64)[:, 3],
+                                     item, motion_b, margin, GJK_ITERATIONS)
+    return hull_pair_rounds_np(hulls, part, T_part, item, motion_b, margin, guard)[0]
+
+
+def hull_pair_rounds_np(hulls: HullModel, part: int, T_part, item, motion_b: float, margin: float,
+                        guard: float) -> tuple[float, int]:
+    """What step 4 records for one triple (NumPy float64, every round: :func:`hull_rounds`, then
+    :func:`point_round`), and the GJK steps of the round that decided it."""
     T_part = np.asarray(T_part, np.float64)
+    V, c, R, t = hulls.vertices[part], hulls.centre[part], T_part[:, :3], T_part[:, 3]
+    eps = float(np.finfo(np.float64).eps)
+    shell = _shell(float(hulls.radius[part]), motion_b, margin, eps)
 
     def value(iterations: int) -> float:
-        return polytope_clearance_np(hulls.vertices[part], hulls.centre[part], float(hulls.radius[part]),
-                                     T_part[:, :3], T_part[:, 3], item, motion_b, margin, iterations)
+        return polytope_clearance_np(V, c, float(hulls.radius[part]), R, t, item, motion_b, margin, iterations)
 
-    if guard is None:
-        return value(GJK_ITERATIONS)
+    def early(redo):
+        lb, ub = item.polytope_bounds_np(np.asarray(V, np.float64), np.asarray(c, np.float64), R, t, EARLY_ITERATIONS)
+        return np.array([lb - shell]), np.array([ub - shell])
+
     guard = np.array([guard], np.float64)
-    g = two_rounds(np.array([value(0)]), guard, lambda redo: np.array([value(GJK_ITERATIONS)]))
-    eps = float(np.finfo(np.float64).eps)
+    g, steps = hull_rounds(np.array([value(0)]), guard, lambda redo: np.array([value(GJK_ITERATIONS)]),
+                           early if item.stops_early else None, early_stop_slack(np.float64))
 
     def points(redo):
         lb = item.points_lower_bound_np(hulls.vertices[part], hulls.centre[part], T_part[:, :3], T_part[:, 3])
-        return np.array([lb - _shell(float(hulls.radius[part]), motion_b, margin, eps)])
+        return np.array([lb - shell])
 
-    return float(point_round(g, guard, np.atleast_1d(item.separate_points()), points)[0])
+    return float(point_round(g, guard, np.atleast_1d(item.separate_points()), points)[0]), int(steps[0])
 
 
 def polytope_clearance_np(V, centre, radius: float, R, t, item, motion: float, margin: float,
@@ -400,30 +429,6 @@ def select_pairs(links: Links, cap_excess: np.ndarray, upper_excess: np.ndarray)
     triples = np.concatenate(triples) if triples else np.zeros((0, 3), np.int64)
     order = np.lexsort((triples[:, 2], triples[:, 1], triples[:, 0]))
     return tried, triples[order].astype(np.int64)
-
-
-def two_rounds(g_first: np.ndarray, guard: np.ndarray, full) -> np.ndarray:
-    """Step 4's rule: the clearances of T triples from their first-round values ``g_first`` (T,)
-    (the first axis alone), their guards ``guard`` (T,), and ``full(redo)``, the full search's
-    clearances of the triples ``redo`` (indices): a triple keeps its first value iff it exceeds its
-    guard (NaN does not: it gets the full search, which is NaN too)."""
-    g = np.array(g_first, np.float64)
-    redo = np.flatnonzero(~(g > guard))
-    if len(redo):
-        g[redo] = np.asarray(full(redo), np.float64)
-    return g
-
-
-def point_round(g: np.ndarray, guard: np.ndarray, separate: np.ndarray, points) -> np.ndarray:
-    """Step 4's third round: the triples (T,) at or below their ``guard`` after two rounds whose
-    obstacle is made of ``separate`` (T,) points get the larger of their value ``g`` and
-    ``points(redo)``, the per-point clearances of those triples ``redo`` (indices). Both are sound
-    lower bounds, so is the larger; a NaN stays NaN (and is not searched again)."""
-    g = np.array(g, np.float64)
-    redo = np.flatnonzero(~(g > guard) & ~np.isnan(g) & np.asarray(separate, bool))
-    if len(redo):
-        g[redo] = np.maximum(g[redo], np.asarray(points(redo), np.float64))
-    return g
 
 
 def combine(links: Links, g_capsule: np.ndarray, guard_capsule: np.ndarray, tried: np.ndarray,

@@ -22,7 +22,8 @@ import numpy as np
 from .geometry import (point_box_distance, point_box_distance_np, segment_box_distance, segment_box_distance_np,
                         segment_box_lower_bound, segment_box_lower_bound_np)
 from ..lazy_jax import jnp, pytree_dataclass
-from .polytope import GJK_ITERATIONS, polytope_box_lower_bound, polytope_box_lower_bound_np
+from .polytope import (GJK_ITERATIONS, polytope_box_bounds, polytope_box_bounds_np, polytope_box_lower_bound,
+                       polytope_box_lower_bound_np)
 from ..model.scene import Scene, pad_scenes
 from .protocol import ObstacleSet
 
@@ -102,3 +103,11 @@ class AlignedBoxes(ObstacleSet):
 
     def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
         return polytope_box_lower_bound_np(V, centre, R, t, self.lo, self.hi, iterations)
+
+    stops_early = True
+
+    def polytope_bounds(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
+        return polytope_box_bounds(vertices, part, centre, R, t, self.lo, self.hi, iterations)
+
+    def polytope_bounds_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> tuple[float, float]:
+        return polytope_box_bounds_np(V, centre, R, t, self.lo, self.hi, iterations)

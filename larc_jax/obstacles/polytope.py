@@ -44,8 +44,22 @@ bounded *a posteriori*, from the numbers of each evaluation, and subtracted from
 * ``s = fl(corner - p)`` (one rounding per component), ``fl(w . s)`` (3 terms) and
   ``fl(sqrt(w . w))`` and the division: ``<= 8 u (sum_i |w_i s_i| / |w| + |lb|)``.
 
-So each evaluation returns ``lb - 32 u (sum_i |w_i s_i| / |w| + |lb| + max_j |v_j|)`` (constants
-doubled, then more): never more than (S) for the computed placement.
+* the winner is the first vertex scoring within ``tol = TIE |w|_1 v_max`` of the best score
+  (``v_max >= max_j |v_j|_1``; "One path" below): it may miss the maximum by ``tol`` more, which
+  costs (S) at most ``tol / |w| <= sqrt(3) TIE v_max``.
+
+So each evaluation returns ``lb - 32 u (sum_i |w_i s_i| / |w| + |lb| + max_j |v_j|) - 2 TIE v_max``
+(constants doubled, then more): never more than (S) for the computed placement.
+
+One path. The kernel and its NumPy reference round differently, and a search that meets a tie
+(an axis component that is rounding noise, as when the nearest feature is a box face; two vertices
+or two faces equally near) would go on along different simplices in the two, with different
+values after a given number of steps. Ties are therefore broken by rules that rounding noise
+does not move (:data:`TIE`): an axis component below ``TIE |w|_1`` is set to 0 before the axis is
+used (any axis is sound), the support vertex is the first within ``tol`` of the best, and the
+nearest face is the first within a relative ``TIE`` of the least (a vertex before the edges
+through it, an edge before the triangles). Then both take the same steps (tests/test_polytope.py
+compares them after every number of steps), which the hull stage's early rounds rely on.
 
 Several placements (the swept test, :mod:`larc_jax.leaf.swept`). Given poses ``(R_i, t_i)``, the
 polytope is ``conv(U_i (R_i V + t_i))``, whose support along ``w`` is the largest of the
@@ -70,6 +84,13 @@ the obstacle's point of least ``w . x``.
 ``jax.vmap``; it reads the vertices a column at a time, so a gathered vertex table fuses into
 the support reduction instead of being copied per pair); :func:`polytope_box_lower_bound_np` is
 its NumPy float64 reference, the same steps written with loops.
+
+An upper bound, to stop early (:func:`polytope_box_bounds`). The search's iterate ``w`` is the
+point of ``conv(Y)`` nearest the origin, ``Y`` points of ``D`` (0 once a tetrahedron holds the
+origin), so ``d(P, B) = min_{z in D} |z| <= |w|`` in exact arithmetic: no later step can raise the
+lower bound above ``|w|``. The hull stage uses it only to *stop searching* a pair that cannot pass
+(:func:`larc_jax.leaf.rounds.hull_rounds`), never to certify, so it needs no rounding care
+beyond a slack that keeps last-bit ties searching on (they would only cost work).
 """
 
 from __future__ import annotations
@@ -81,8 +102,8 @@ import numpy as np
 
 from ..lazy_jax import jax, jnp
 
-__all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np", "polytope_hull_lower_bound",
-           "polytope_hull_lower_bound_np"]
+__all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np", "polytope_box_bounds",
+           "polytope_box_bounds_np", "polytope_hull_lower_bound", "polytope_hull_lower_bound_np"]
 
 GJK_ITERATIONS = 12
 """GJK steps per polytope-box pair (fixed: the kernel is vectorised over pairs)."""
@@ -90,6 +111,12 @@ GJK_ITERATIONS = 12
 _FACES = tuple(s for k in (1, 2, 3) for s in itertools.combinations(range(4), k))
 """Faces of a 4-point simplex tried by the nearest-point step, in a fixed order (ties go to the
 first, in the kernel and the reference alike)."""
+
+TIE = 2.0**-30
+"""Relative width of a tie (module docstring, "One path"): an axis component below ``TIE`` times
+the axis's 1-norm is taken as 0, a vertex scoring within ``TIE |w|_1 v_max`` of the best is a
+winner (the first such), a face within ``TIE`` of the least squared distance is a nearest face
+(the first such: vertices, then edges, then triangles)."""
 
 _DEGENERATE = 1e-12
 """A triangle whose Gram determinant is below this fraction of ``|e1|^2 |e2|^2`` is skipped
@@ -147,7 +174,8 @@ def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     W = (jax.nn.one_hot(i, 4, dtype=dtype) * lam[:, :1] + jax.nn.one_hot(j, 4, dtype=dtype) * lam[:, 1:2]
          + jax.nn.one_hot(k, 4, dtype=dtype) * lam[:, 2:])
     norm2 = jnp.where(ok, jnp.einsum("fa,ab,fb->f", W, G, W, precision=jax.lax.Precision.HIGHEST), jnp.inf)
-    lam4 = W[jnp.argmin(norm2)]
+    least = jnp.min(norm2)
+    lam4 = W[jnp.argmax(norm2 <= least + TIE * jnp.abs(least))]  # the first nearest face (TIE)
     e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
     vol = _triple(e1, e2, e3)
     sub = jnp.stack([_triple(-Y[0], e2, e3), _triple(e1, -Y[0], e3), _triple(e1, e2, -Y[0])])
@@ -159,21 +187,23 @@ def _nearest_in_simplex(Y: jax.Array, active: jax.Array):
     return x, lam4
 
 
-def first_max(scores):
-    """``(k, found)``: the first index of the largest of ``scores`` (n,), the vertex ``jnp.argmax``
-    picks, found by two plain reductions (a max, then a min over the indices that equal it):
+def first_max(scores, tol=0.0):
+    """``(k, found)``: the first index scoring at least the largest of ``scores`` (n,) less ``tol``
+    (with ``tol = 0``, the vertex ``jnp.argmax`` picks; the search passes its tie width, module
+    docstring "One path"), found by two plain reductions (a max, then a min over those indices):
     XLA's CPU backend runs ``argmax``'s variadic value-and-index reduce slower, and this is the
     search's inner loop (every step scans the part's vertices): 4,608 PIPER pairs of 691 columns,
     12 steps, took 165 ms with this choice against 264 ms with ``argmax`` (one call each, a loaded
     2-core machine, before ``v_max`` was taken per part).
 
     XLA may compute ``scores`` once for each reduction. Whatever rounding each computation has,
-    the winner scores the maximum in one of them, so the choice misses the true maximum by no more
-    than with a single computation (the module docstring's ``12 u`` term). Should no index equal
-    the maximum (NaN scores, or two computations that disagree), ``found`` is False and ``k`` 0:
+    the winner scores the maximum less ``tol`` in one of them, so the choice misses the true
+    maximum by no more than ``tol`` and two computations' rounding (the module docstring's ``12 u``
+    and tie terms). Should no index qualify (NaN scores, or two computations that disagree by
+    more than ``tol``), ``found`` is False and ``k`` 0:
     the caller then gives no bound (-inf) rather than one from an arbitrary vertex."""
     n = scores.shape[0]
-    k = jnp.min(jnp.where(scores == jnp.max(scores), jnp.arange(n), n))
+    k = jnp.min(jnp.where(scores >= jnp.max(scores) - tol, jnp.arange(n), n))
     found = k < n
     return jnp.where(found, k, 0), found
 
@@ -203,6 +233,18 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
       Scalar, m: never more than the true distance (exact up to rounding once the search has
       converged); <= 0 when the sets may touch; NaN for non-finite input.
     """
+    return _box_search(vertices, part, centre, R, t, lo, hi, iterations, upper=False)
+
+
+def polytope_box_bounds(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,
+                        t: jax.Array, lo: jax.Array, hi: jax.Array, iterations: int = GJK_ITERATIONS):
+    """``(lower, upper)``: :func:`polytope_box_lower_bound` and the norm of the search's last
+    iterate, an upper bound on the distance up to rounding (module docstring: for stopping a
+    search early, never for certifying); both NaN for non-finite input."""
+    return _box_search(vertices, part, centre, R, t, lo, hi, iterations, upper=True)
+
+
+def _box_search(vertices, part, centre, R, t, lo, hi, iterations, upper):
     dtype = R.dtype
     lo, hi = lo.astype(dtype), hi.astype(dtype)
 
@@ -210,7 +252,8 @@ def polytope_box_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.A
         return jnp.where(w > 0, lo, hi)
 
     finite = jnp.isfinite(lo).all() & jnp.isfinite(hi).all()
-    return _gjk(vertices, part, centre, R, t, lowest, lambda c: jnp.clip(c, lo, hi) - c, None, finite, iterations)
+    return _gjk(vertices, part, centre, R, t, lowest, lambda c: jnp.clip(c, lo, hi) - c, None, finite, iterations,
+                upper)
 
 
 def polytope_hull_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,
@@ -231,10 +274,11 @@ def polytope_hull_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.
                 jnp.isfinite(Y).all(), iterations)
 
 
-def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_finite, iterations):
+def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_finite, iterations, upper=False):
     """The GJK search of the module docstring between the placed polytope and an obstacle given by
     ``lowest(w)`` (its point of least ``w . x``) and ``seed(c)`` (the first axis from the placed
-    centre ``c``); ``obstacle_scale`` (None: exact) is the obstacle's part of the choice error."""
+    centre ``c``); ``obstacle_scale`` (None: exact) is the obstacle's part of the choice error.
+    ``upper`` (static): also return ``|w|`` of the last iterate (module docstring)."""
     dtype = R.dtype
     centre, t = (x.astype(dtype) for x in (centre, t))
     table = vertices.astype(dtype)
@@ -253,21 +297,24 @@ def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_fi
         """(S) at ``w`` less its rounding bound (module docstring), and the point of D = B - P
         attaining it."""
         w = jnp.where(_dot(w, w) > 0, w, unit_x)  # any axis is sound; this one avoids 0/0
+        w_1 = jnp.abs(w).sum()
+        w = jnp.where(jnp.abs(w) <= TIE * w_1, 0, w)  # one path: a noise component is 0 (docstring)
+        tol = TIE * w_1 * v_max  # a vertex this close to the best is a winner
         V = table[part]  # read by the reductions only (fused); the winner is fetched apart
         if union:
             m = jnp.einsum("pij,i->pj", R, w, precision=jax.lax.Precision.HIGHEST)  # the axis per placement
             scores = V[:, None, 0] * m[:, 0] + V[:, None, 1] * m[:, 1] + V[:, None, 2] * m[:, 2] + _dot(t, w)
-            flat, found = first_max(scores.reshape(-1))
+            flat, found = first_max(scores.reshape(-1), tol)
             k, i = flat // R.shape[0], flat % R.shape[0]
             placed = _dot(R[i], table[part, k]) + t[i]
         else:
             m = _dot(R.T, w)  # the axis in the link frame
-            k, found = first_max(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2])
+            k, found = first_max(V[:, 0] * m[0] + V[:, 1] * m[1] + V[:, 2] * m[2], tol)
             placed = _dot(R, table[part, k]) + t
         s = lowest(w) - placed
         norm = jnp.sqrt(_dot(w, w))
         lb = _dot(w, s) / norm
-        lb = lb - 32 * u * (_dot(jnp.abs(w), jnp.abs(s)) / norm + jnp.abs(lb) + v_max)
+        lb = lb - 32 * u * (_dot(jnp.abs(w), jnp.abs(s)) / norm + jnp.abs(lb) + v_max) - 2 * TIE * v_max
         return jnp.where(found, lb, -jnp.inf), s  # no winner found: no bound, never more than (S)
 
     if union:
@@ -292,9 +339,12 @@ def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_fi
         w_new, lam = _nearest_in_simplex(Y, active)
         return Y, jnp.where(room, lam > 0, active), jnp.where(room, w_new, w), best
 
-    _, _, _, best = jax.lax.fori_loop(0, iterations, step, (Y, active, s, best))
+    _, active, w, best = jax.lax.fori_loop(0, iterations, step, (Y, active, s, best))
     finite = jnp.isfinite(R).all() & jnp.isfinite(t).all() & obstacle_finite
-    return jnp.where(finite, best, jnp.nan)
+    if not upper:
+        return jnp.where(finite, best, jnp.nan)
+    reach = jnp.where(jnp.all(active), 0.0, jnp.sqrt(_dot(w, w)))  # a full simplex holds the origin
+    return jnp.where(finite, best, jnp.nan), jnp.where(finite, reach, jnp.nan)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -304,7 +354,7 @@ def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_fi
 
 def _nearest_in_simplex_np(Y: np.ndarray, active: np.ndarray):
     G = Y @ Y.T
-    best_n2, best_lam = math.inf, None
+    candidates = []
     for face in _FACES:
         if not all(active[i] for i in face):
             continue
@@ -332,9 +382,10 @@ def _nearest_in_simplex_np(Y: np.ndarray, active: np.ndarray):
             continue
         full = np.zeros(4)
         full[list(face)] = lam
-        n2 = float(full @ G @ full)
-        if n2 < best_n2:
-            best_n2, best_lam = n2, full
+        candidates.append((float(full @ G @ full), full))
+    least = min(n2 for n2, _ in candidates)
+    best_lam = next((full for n2, full in candidates if n2 <= least + TIE * abs(least)),  # the first nearest face
+                    candidates[0][1])
     if active.all():
         e1, e2, e3 = Y[1] - Y[0], Y[2] - Y[0], Y[3] - Y[0]
         vol = float(e1 @ np.cross(e2, e3))
@@ -348,9 +399,14 @@ def _nearest_in_simplex_np(Y: np.ndarray, active: np.ndarray):
 
 def polytope_box_lower_bound_np(V, centre, R, t, lo, hi, iterations: int = GJK_ITERATIONS) -> float:
     """NumPy float64 reference of :func:`polytope_box_lower_bound` (same steps, loops)."""
+    return polytope_box_bounds_np(V, centre, R, t, lo, hi, iterations)[0]
+
+
+def polytope_box_bounds_np(V, centre, R, t, lo, hi, iterations: int = GJK_ITERATIONS) -> tuple[float, float]:
+    """NumPy float64 reference of :func:`polytope_box_bounds`."""
     lo, hi = (np.asarray(x, np.float64) for x in (lo, hi))
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
-        return math.nan
+        return math.nan, math.nan
     return _gjk_np(V, centre, R, t, lambda w: np.where(w > 0, lo, hi), lambda c: np.clip(c, lo, hi) - c, 0.0,
                    iterations)
 
@@ -361,13 +417,14 @@ def polytope_hull_lower_bound_np(V, centre, R, t, Y, iterations: int = GJK_ITERA
     if not np.isfinite(Y).all():
         return math.nan
     return _gjk_np(V, centre, R, t, lambda w: Y[int(np.argmin(Y @ w))], lambda c: Y.mean(axis=0) - c,
-                   float(np.abs(Y).sum(axis=1).max()), iterations)
+                   float(np.abs(Y).sum(axis=1).max()), iterations)[0]
 
 
-def _gjk_np(V, centre, R, t, lowest, seed, obstacle_scale: float, iterations: int) -> float:
+def _gjk_np(V, centre, R, t, lowest, seed, obstacle_scale: float, iterations: int) -> tuple[float, float]:
+    """``(lower, upper)`` of :func:`_gjk` (``upper=True``)."""
     V, centre, R, t = (np.asarray(x, np.float64) for x in (V, centre, R, t))
     if not all(np.isfinite(x).all() for x in (V, R, t)):
-        return math.nan
+        return math.nan, math.nan
 
     u = float(np.finfo(np.float64).eps) / 2
     union = R.ndim == 3
@@ -378,15 +435,18 @@ def _gjk_np(V, centre, R, t, lowest, seed, obstacle_scale: float, iterations: in
     def bound(w):
         if not w @ w > 0:
             w = np.array([1.0, 0.0, 0.0])
+        w_1 = float(np.abs(w).sum())
+        w = np.where(np.abs(w) <= TIE * w_1, 0.0, w)
         if union:
             scores = np.stack([V @ (Ri.T @ w) + ti @ w for Ri, ti in zip(Rs, ts)], axis=1)  # (K, m)
-            k, i = np.unravel_index(int(np.argmax(scores)), scores.shape)
         else:
-            k, i = int(np.argmax(V @ (R.T @ w))), 0
+            scores = (V @ (R.T @ w))[:, None]
+        flat = int(np.argmax(scores.reshape(-1) >= scores.max() - TIE * w_1 * v_max))  # the first winner
+        k, i = np.unravel_index(flat, scores.shape)
         s = lowest(w) - (Rs[i] @ V[k] + ts[i])
         norm = math.sqrt(w @ w)
         lb = float(w @ s) / norm
-        return lb - 32 * u * (float(np.abs(w) @ np.abs(s)) / norm + abs(lb) + v_max), s
+        return lb - 32 * u * (float(np.abs(w) @ np.abs(s)) / norm + abs(lb) + v_max) - 2 * TIE * v_max, s
 
     c = np.mean([Ri @ centre + ti for Ri, ti in zip(Rs, ts)], axis=0) if union else R @ centre + t
     best, s = bound(seed(c))
@@ -404,4 +464,4 @@ def _gjk_np(V, centre, R, t, lowest, seed, obstacle_scale: float, iterations: in
         active[slot] = True
         w, lam = _nearest_in_simplex_np(Y, active)
         active = lam > 0
-    return best
+    return best, (0.0 if active.all() else math.sqrt(float(w @ w)))

@@ -27,8 +27,7 @@ from ..enclosure.capsule import CapsuleModel
 from ..enclosure.tracking import check_tracking_tolerance
 from ..engine.results import Leaf, TrajectoryResult
 from ..errors import LarcInputError
-from ..leaf.cascade import hull_pair_clearance_np, interval_pairs_np, polytope_clearance_np
-from ..obstacles.polytope import GJK_ITERATIONS
+from ..leaf.cascade import hull_pair_rounds_np, interval_pairs_np
 from ..leaf.interval import evaluate_interval_np, trajectory_rounding
 from ..leaf.placement import motion_radii
 from ..leaf.record import LeafRecord, Stage
@@ -148,16 +147,15 @@ def _deciding_part(robot: Robot, enc: LeafEnclosures, traj, scene: Scene, leaf: 
         return None
     d = interval_pairs_np(robot, enc.capsules, hulls, traj, scene, leaf.t0, leaf.t1, margin, bounds, ev)
     guard = np.asarray(bounds.hull_guard_m, np.float64)[on_link]
-    g = np.array([hull_pair_clearance_np(hulls, p, d.T_part[p], item, d.motion_b[p], margin, gd)
-                  for p, gd in zip(on_link, guard)])
+    g, steps = np.array([hull_pair_rounds_np(hulls, p, d.T_part[p], item, d.motion_b[p], margin, gd)
+                         for p, gd in zip(on_link, guard)]).T
     best = int(np.argmin(g - guard))
     if not (g[best] == record.clearance_m and guard[best] == record.guard_m):
         return None  # the capsules decided the worst (link, box) pair
     p, T = int(on_link[best]), np.asarray(d.T_part[on_link[best]], np.float64)
     V, c, R, t = hulls.vertices[p], hulls.centre[p], T[:, :3], T[:, 3]
-    # The bound the cascade recorded: the first axis's when it passed there (cascade step 4).
-    first = polytope_clearance_np(V, c, float(hulls.radius[p]), R, t, item, float(d.motion_b[p]), margin, 0)
-    lb = item.polytope_lower_bound_np(V, c, R, t, 0 if first > guard[best] else GJK_ITERATIONS)
+    # The bound the cascade recorded: that of the round that decided the triple (cascade step 4).
+    lb = item.polytope_lower_bound_np(V, c, R, t, int(steps[best]))
     placed = np.asarray(hulls.vertices[p][: hulls.n_vertices[p]], np.float64) @ T[:, :3].T + T[:, 3]
     return DecidingPart(index=p, name=hulls.names[p], vertices_m=placed, radius_m=float(hulls.radius[p]),
                         motion_b_m=float(d.motion_b[p]), lower_bound_m=float(lb), reach_m=float(lb - g[best]),
