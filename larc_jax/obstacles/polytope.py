@@ -49,7 +49,10 @@ bounded *a posteriori*, from the numbers of each evaluation, and subtracted from
   costs (S) at most ``tol / |w| <= sqrt(3) TIE v_max``.
 
 So each evaluation returns ``lb - 32 u (sum_i |w_i s_i| / |w| + |lb| + max_j |v_j|) - 2 TIE v_max``
-(constants doubled, then more): never more than (S) for the computed placement.
+(constants doubled, then more): never more than (S) for the computed placement. The last
+subtraction may itself round away where ``2 TIE v_max`` is below half an ulp of the result
+(float32: ``TIE`` is far below ``u``); the 32 u term's own surplus over the 20 u it covers,
+``12 u v_max``, is then larger than it, so the bound holds in either dtype.
 
 One path. The kernel and its NumPy reference round differently, and a search that meets a tie
 (an axis component that is rounding noise, as when the nearest feature is a box face; two vertices
