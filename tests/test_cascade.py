@@ -708,3 +708,33 @@ def test_larc_compiles_one_step_one(dataset, model, monkeypatch):
     for name in ("certified", "stage", "capsule", "box", "guard_m"):
         np.testing.assert_array_equal(getattr(larc.leaves, name)[deep], getattr(fine.leaves, name)[at], err_msg=name)
     np.testing.assert_allclose(larc.leaves.clearance_m[deep], fine.leaves.clearance_m[at], rtol=0, atol=1e-12)
+
+
+def test_a_box_only_scene_batched_with_a_posed_one_records_what_it_records_alone(dataset, model, larc):
+    """A batch holding any posed scene stacks every scene as posed shapes (no upper bound, so no
+    early fail), while the reference and ``larc verify`` read a box-only scene as aligned boxes.
+    A passing triple must still go through the same rounds in both (a pass stops every kind in the
+    same round), so a certified trajectory's leaves record the same clearances batched with a posed
+    scene as alone, and as the reference records them (``larc verify`` refutes a stored clearance
+    above the recomputed one by more than rounding)."""
+    from pathlib import Path
+
+    robot, capsules, _ = model
+    trajs, scenes = dataset
+    shapes = lj.read_scene(str(Path(__file__).resolve().parents[1] / "configs" / "examples" / "cell_shapes.yaml"))
+    assert shapes.posed and not any(s.posed for s in scenes)
+    kw = dict(method="larc", margin=MARGIN, max_depth=DEPTH)
+    mixed = lj.certify(list(trajs) + [trajs[0]], list(scenes) + [shapes], robot, capsules, **kw)
+    ref = lj.certify(list(trajs) + [trajs[0]], list(scenes) + [shapes], robot, capsules,
+                     **dict(kw, method="reference"))
+    n = len(trajs)
+    assert (mixed.certified[:n] == larc.certified).all() and (ref.certified == mixed.certified).all()
+    ours = mixed.leaves.traj < n
+    certified = larc.certified[larc.leaves.traj]
+    assert ((larc.leaves.stage == 2) & certified).sum() > 5  # hull-decided leaves of certified trajectories
+    np.testing.assert_array_equal(mixed.leaves.stage[ours], larc.leaves.stage)
+    np.testing.assert_allclose(mixed.leaves.clearance_m[ours][certified], larc.leaves.clearance_m[certified],
+                               rtol=0, atol=1e-12)
+    mine = ref.leaves.traj < n
+    np.testing.assert_allclose(ref.leaves.clearance_m[mine][certified], mixed.leaves.clearance_m[ours][certified],
+                               rtol=0, atol=1e-9)

@@ -427,7 +427,7 @@ class Batch:
 
             g_hull, _ = hull_rounds(first, guard_hull,
                                     lambda redo: self._hull_round(hull_pairs, d, sel, triples[redo], on_compile),
-                                    early if type(self.obstacles).stops_early else None, early_stop_slack(self.dtype))
+                                    early, early_stop_slack(self.dtype))
             g_hull = point_round(g_hull, guard_hull, self._item_set(sel, i, k).separate_points(),
                                  lambda redo: self._hull_round(hull_points, d, sel, triples[redo], on_compile))
         g, guard, cap, box, _ = combine(links, d.g_capsule, G_c, tried, triples, g_hull, guard_hull)

@@ -41,10 +41,10 @@ Order of work (all of it deterministic, so every scheduler takes the same decisi
 4. those (interval, part, box) triples (:func:`hull_pair_clearance`) in rounds
    (:func:`~larc_jax.leaf.rounds.hull_rounds`): first every triple on the GJK search's first
    axis alone (``iterations=0``, the direction from the part's centre to the obstacle: one
-   support evaluation, about a thirteenth of the search); then, where the obstacle kind gives an
-   upper bound (``stops_early``: boxes), :data:`~larc_jax.leaf.rounds.EARLY_ITERATIONS` steps
-   with their upper bound (:func:`hull_pair_bounds`) on the triples the first round left at or
-   below their guard; then the full search (:data:`~larc_jax.obstacles.polytope.GJK_ITERATIONS`
+   support evaluation, about a thirteenth of the search); then
+   :data:`~larc_jax.leaf.rounds.EARLY_ITERATIONS` steps with their upper bound
+   (:func:`hull_pair_bounds`; ``+inf`` for kinds without one, so far all but boxes) on the
+   triples the first round left at or below their guard; then the full search (:data:`~larc_jax.obstacles.polytope.GJK_ITERATIONS`
    steps, from scratch) on those still undecided: at or below the guard, and an upper bound above
    ``guard - slack`` (:func:`~larc_jax.leaf.rounds.early_stop_slack`). Each round is a sound
    lower bound (stopping never certifies what the round did not prove); the search keeps the
@@ -267,7 +267,7 @@ def hull_points_clearance(hulls: HullModel, part, T_part, item, motion_b, margin
 def hull_pair_bounds(hulls: HullModel, part, T_part, item, motion_b, margin, iterations: int = EARLY_ITERATIONS):
     """``(g_h, upper)``: :func:`hull_pair_clearance` and an upper bound of the same clearance up to
     rounding (the search's last iterate less the same shell; only to stop searching, module
-    docstring step 4), for an obstacle kind that ``stops_early`` (kernel; ``vmap`` it)."""
+    docstring step 4; ``+inf`` for a kind without one) (kernel; ``vmap`` it)."""
     eps = float(jnp.finfo(motion_b.dtype).eps)
     lb, ub = item.polytope_bounds(hulls.vertices, part, hulls.centre[part], T_part[:, :3], T_part[:, 3], iterations)
     shell = _shell(hulls.radius[part], motion_b, margin, eps)
@@ -352,7 +352,7 @@ def hull_pair_rounds_np(hulls: HullModel, part: int, T_part, item, motion_b: flo
 
     guard = np.array([guard], np.float64)
     g, steps = hull_rounds(np.array([value(0)]), guard, lambda redo: np.array([value(GJK_ITERATIONS)]),
-                           early if item.stops_early else None, early_stop_slack(np.float64))
+                           early, early_stop_slack(np.float64))
 
     def points(redo):
         lb = item.points_lower_bound_np(hulls.vertices[part], hulls.centre[part], T_part[:, :3], T_part[:, 3])

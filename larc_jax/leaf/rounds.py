@@ -5,8 +5,8 @@ The rules are NumPy, shared by every scheduler (the batched host frontier, the r
 takes the rounds' values and asks for the next round only on the triples still undecided.
 
 * The first round is the search's first axis alone (``iterations=0``), on every triple.
-* The middle round (:data:`EARLY_ITERATIONS` steps, for obstacle kinds that give an upper
-  bound: ``stops_early``) decides a triple that passes, and one that cannot pass: its upper bound
+* The middle round (:data:`EARLY_ITERATIONS` steps, every obstacle kind) decides a triple that
+  passes, and one that cannot pass (kinds that give an upper bound: boxes): its upper bound
   (the search's last iterate, :func:`larc_jax.obstacles.polytope.polytope_box_bounds`) at or
   below its guard less :func:`early_stop_slack`. No later step raises a lower bound above the
   upper one, so the full search would fail that triple too, up to rounding, which the slack covers

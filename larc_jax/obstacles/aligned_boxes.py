@@ -104,8 +104,6 @@ class AlignedBoxes(ObstacleSet):
     def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
         return polytope_box_lower_bound_np(V, centre, R, t, self.lo, self.hi, iterations)
 
-    stops_early = True
-
     def polytope_bounds(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
         return polytope_box_bounds(vertices, part, centre, R, t, self.lo, self.hi, iterations)
 

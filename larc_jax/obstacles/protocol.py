@@ -26,11 +26,12 @@ float64 twin (suffix ``_np``) for the reference scheduler and ``larc verify``:
   ``iterations`` (static) is the number of GJK steps after the first axis
   (:mod:`larc_jax.obstacles.polytope`); 0 gives the first axis's bound alone, the cheap first
   round of the hull stage (:mod:`larc_jax.leaf.cascade`, step 4);
-- ``polytope_bounds(vertices, part, centre, R, t, iterations)``, for a kind whose
-  :attr:`~ObstacleSet.stops_early` is true: ``(polytope_lower_bound, upper)``, ``upper`` an upper
-  bound on that distance up to rounding (the search's last iterate,
+- ``polytope_bounds(vertices, part, centre, R, t, iterations)``: ``(polytope_lower_bound,
+  upper)``, ``upper`` an upper bound on that distance up to rounding (the search's last iterate,
   :func:`larc_jax.obstacles.polytope.polytope_box_bounds`), with which the hull stage stops
-  searching a pair that cannot pass (never to certify; other kinds are searched in full);
+  searching a pair that cannot pass (never to certify). The default is ``+inf`` (never stops a
+  failing pair early; a passing pair stops in every kind alike, so a certified leaf records the
+  same round whichever kind a batch stacks a box-only scene as);
 - ``points_lower_bound(vertices, part, centre, R, t, iterations)``: for an item that is a set of
   separate points (a point cloud's piece, :meth:`ObstacleSet.separate_points`), a lower bound on
   the distance from the polytope to its nearest point (the hull stage's third round); ``-inf``
@@ -52,6 +53,7 @@ the items; a padding item's value there is ``+inf`` (never nearer than anything)
 from __future__ import annotations
 
 import abc
+import math
 import dataclasses
 
 import numpy as np
@@ -105,14 +107,12 @@ class ObstacleSet(abc.ABC):
     @abc.abstractmethod
     def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float: ...
 
-    stops_early = False
-    """Whether the kind gives ``polytope_bounds`` (module docstring)."""
-
     def polytope_bounds(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
-        raise NotImplementedError(f"{type(self).__name__} gives no polytope upper bound")
+        lb = self.polytope_lower_bound(vertices, part, centre, R, t, iterations)
+        return lb, jnp.full_like(lb, jnp.inf)
 
     def polytope_bounds_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> tuple[float, float]:
-        raise NotImplementedError(f"{type(self).__name__} gives no polytope upper bound")
+        return self.polytope_lower_bound_np(V, centre, R, t, iterations), math.inf
 
     def points_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
         return jnp.full((), -jnp.inf, R.dtype)
