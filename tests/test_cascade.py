@@ -452,9 +452,10 @@ def test_hull_rounds_rule():
 
 
 def test_two_rounds_rule():
-    """Named cases of :func:`hull_rounds` without a middle round (an obstacle kind with no upper
-    bound): a first value above its guard is kept; at the guard, below it or NaN, the full
-    search's value replaces it (and only those are asked for)."""
+    """Named cases of :func:`hull_rounds` without a middle round (``early=None``; no scheduler
+    passes it since every obstacle kind takes the middle round, but the rule stays defined): a
+    first value above its guard is kept; at the guard, below it or NaN, the full search's value
+    replaces it (and only those are asked for)."""
     from larc_jax.leaf.rounds import hull_rounds
 
     def two_rounds(first, guard, full):
