@@ -141,10 +141,21 @@ def test_timeline_colours(viewer):
     assert tuple(img[10, x]) == STAGE_COLOURS["inconclusive"]
 
 
+def communicate_or_dump(p, timeout):
+    """``p.communicate``; if ``p`` (started with ``-X faulthandler``) hangs, SIGABRT makes it print
+    every thread's stack to its stderr, which the failure then shows."""
+    try:
+        return p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGABRT)
+        out, err = p.communicate(timeout=30)
+        pytest.fail(f"no exit within {timeout} s after Ctrl-C; its threads:\n{err[-8000:]}")
+
+
 def test_cli_prints_the_url_and_stops_on_ctrl_c(cert):
     port = free_port()
-    p = subprocess.Popen([sys.executable, "-m", "larc_jax.drivers.cli", "view", str(cert[0]), "--port", str(port)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "larc_jax.drivers.cli", "view", str(cert[0]),
+                          "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = ""
         deadline = time.time() + 60
@@ -153,12 +164,46 @@ def test_cli_prints_the_url_and_stops_on_ctrl_c(cert):
             assert line or p.poll() is None, p.stderr.read()
         assert f"http://127.0.0.1:{port}" in line
         p.send_signal(signal.SIGINT)
-        out, err = p.communicate(timeout=30)
+        out, err = communicate_or_dump(p, 30)
     finally:
         if p.poll() is None:
             p.kill()
     assert p.returncode == 0, err
     assert "Traceback" not in err
+
+
+# Ctrl-C landing while the serving loop waits between frames. Python runs a signal handler in the
+# main thread between two bytecodes, wherever the loop is; a handler that took a lock the wait
+# held (threading.Event.set inside Event.wait, the loop before) blocked forever. Here the handler
+# runs from inside the loop's wait itself, every frame from the third on, exactly as a signal can.
+CTRL_C_IN_THE_WAIT = """
+import signal, sys, time, types
+from larc_jax.products import view as V
+v = V.view(sys.argv[1], port=int(sys.argv[2]), block=False)
+v.play.value = True
+calls = [0]
+def sleep(seconds):
+    calls[0] += 1
+    if calls[0] >= 3:
+        signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+    time.sleep(seconds)
+V.time = types.SimpleNamespace(sleep=sleep)
+v.run(fps=200.0)
+assert signal.getsignal(signal.SIGINT) is signal.default_int_handler, "Ctrl-C handler not restored"
+print("stopped after", calls[0], "waits", flush=True)
+"""
+
+
+def test_ctrl_c_during_the_wait_stops_the_loop(cert):
+    p = subprocess.Popen([sys.executable, "-X", "faulthandler", "-c", CTRL_C_IN_THE_WAIT, str(cert[0]),
+                          str(free_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = communicate_or_dump(p, 60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    assert "stopped after 3 waits" in out, out + err
 
 
 def test_cli_bad_input_exits_2(tmp_path, capsys):

@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import signal
 import threading
+import time
 
 import numpy as np
 
@@ -241,13 +242,17 @@ class Viewer:
 
         In the main thread Ctrl-C only sets a flag that the loop reads: a KeyboardInterrupt raised
         inside viser's calls (a slider update waiting on the server's event loop) could leave
-        the server unable to stop, and the process would hang on its threads."""
-        stop = threading.Event()
+        the server unable to stop, and the process would hang on its threads. The handler takes
+        no lock: Python runs it in the main thread between any two bytecodes, so one that called
+        ``threading.Event.set`` while the loop sat inside ``Event.wait`` (which holds the event's
+        lock while it queues its waiter) would block on that lock forever -- the hang this loop
+        had before it slept with ``time.sleep``, which a signal interrupts without a lock held."""
+        stop = [False]
         main = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) if main else None
+        previous = signal.signal(signal.SIGINT, lambda *_: stop.__setitem__(0, True)) if main else None
         try:
-            while not stop.is_set():
-                stop.wait(1.0 / fps)
+            while not stop[0]:
+                time.sleep(1.0 / fps)
                 self.step(1.0 / fps)
         except KeyboardInterrupt:
             pass
