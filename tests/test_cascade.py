@@ -712,10 +712,10 @@ def test_larc_compiles_one_step_one(dataset, model, monkeypatch):
 
 
 def test_a_box_only_scene_batched_with_a_posed_one_records_what_it_records_alone(dataset, model, larc):
-    """A batch holding any posed scene stacks every scene as posed shapes (no upper bound, so no
-    early fail), while the reference and ``larc verify`` read a box-only scene as aligned boxes.
-    A passing triple must still go through the same rounds in both (a pass stops every kind in the
-    same round), so a certified trajectory's leaves record the same clearances batched with a posed
+    """A batch holding any posed scene stacks every scene as posed shapes (whose upper bound, R8,
+    subtracts R4's term: a failing triple may stop in another round), while the reference and
+    ``larc verify`` read a box-only scene as aligned boxes. A passing triple must still go through
+    the same rounds in both (a pass stops every kind in the same round), so a certified trajectory's leaves record the same clearances batched with a posed
     scene as alone, and as the reference records them (``larc verify`` refutes a stored clearance
     above the recomputed one by more than rounding)."""
     from pathlib import Path
@@ -739,3 +739,60 @@ def test_a_box_only_scene_batched_with_a_posed_one_records_what_it_records_alone
     mine = ref.leaves.traj < n
     np.testing.assert_allclose(ref.leaves.clearance_m[mine][certified], mixed.leaves.clearance_m[ours][certified],
                                rtol=0, atol=1e-9)
+
+
+def _posed(scene: Scene, rng) -> Scene:
+    """The scene's boxes as posed boxes, each turned by up to 0.3 rad about its centre."""
+    from scipy.spatial.transform import Rotation
+
+    from larc_jax.model.shapes import Shapes
+
+    n = scene.n_boxes
+    turns = Rotation.from_rotvec(rng.normal(size=(n, 3)) * 0.3 / math.sqrt(3)).as_matrix()
+    shapes = Shapes(kinds=("box",) * n, names=tuple(f"p{i}" for i in range(n)), dims=scene.hi - scene.lo,
+                    p_world_shape=(scene.lo + scene.hi) / 2, R_world_shape=turns)
+    return Scene(lo=np.zeros((0, 3)), hi=np.zeros((0, 3)), shapes=shapes, name=scene.name + "_posed")
+
+
+def test_posed_middle_round_stops_failing_triples_and_decides_as_the_full_search(dataset, model, monkeypatch):
+    """Against posed shapes the middle round also stops triples that cannot pass (their upper
+    bound, R8 of larc_jax.obstacles.convex_shapes, at or below the guard less the slack), and that
+    changes no decision: with the full search on every triple the same intervals are evaluated and
+    every leaf has the same stage (a hull leaf recording a bound no larger than the full search's);
+    and the NumPy reference, with its own bounds, decides as the batched rounds do."""
+    import larc_jax.engine.batch as batch_module
+
+    robot, capsules, _ = model
+    trajs, scenes = dataset
+    rng = np.random.default_rng(11)
+    posed = [_posed(s, rng) for s in scenes]
+    seen = {"stopped": 0, "middle": 0}
+    rounds = batch_module.hull_rounds
+
+    def counting(g_first, guard, full, early=None, slack=0.0):
+        def early_counted(redo):
+            lower, upper = early(redo)
+            seen["middle"] += len(redo)
+            seen["stopped"] += int(((upper <= guard[redo] - slack) & ~(lower > guard[redo])).sum())
+            return lower, upper
+        return rounds(g_first, guard, full, early_counted, slack)
+
+    kw = dict(method="larc", margin=MARGIN, max_depth=DEPTH)
+    monkeypatch.setattr(batch_module, "hull_rounds", counting)
+    larc = lj.certify(trajs, posed, robot, capsules, **kw)
+    assert seen["stopped"] > 20 and seen["middle"] > seen["stopped"], seen
+    assert 0 < larc.certified.sum() < len(trajs) and (larc.leaves.stage == 2).sum() > 20
+    monkeypatch.setattr(batch_module, "hull_first_axis", batch_module.hull_pairs)
+    full = lj.certify(trajs, posed, robot, capsules, **kw)
+    assert (full.certified == larc.certified).all()
+    assert (full.frontier == larc.frontier).all()
+    assert (full.leaves.stage == larc.leaves.stage).all()
+    hull = larc.leaves.stage == 2
+    excess, excess_full = (r.leaves.clearance_m - r.leaves.guard_m for r in (larc, full))
+    assert (excess[hull] <= excess_full[hull] + 1e-12).all()
+    few = slice(0, 6)
+    ref = lj.certify(trajs[few], posed[few], robot, capsules, **dict(kw, method="reference"))
+    mine = larc.leaves.traj < 6
+    assert (ref.certified == larc.certified[few]).all()
+    assert (ref.leaves.stage == larc.leaves.stage[mine]).all()
+    np.testing.assert_allclose(ref.leaves.clearance_m, larc.leaves.clearance_m[mine], rtol=0, atol=1e-9)

@@ -18,9 +18,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from larc_jax.errors import LarcInputError
+from larc_jax.leaf.rounds import EARLY_ITERATIONS
 from larc_jax.model.point_sets import PointSets, convex_pieces
 from larc_jax.model.scene import Scene, read_scene, scene_from_dict
 from larc_jax.obstacles import ConvexShapes, scene_obstacles, stack_scenes
+from larc_jax.obstacles.polytope import GJK_ITERATIONS
 from tests.capsule_audit import bracket_fcl, capsule_clearance, last_certified
 
 EX = Path(__file__).resolve().parent.parent / "configs" / "examples"
@@ -112,7 +114,10 @@ def values():
                        (None, 0, 0))
         points = jax.vmap(lambda item, r, tt: type(item).points_lower_bound(item, table, 0, table[0].mean(0), r, tt),
                           (None, 0, 0))
-        return (*seg, jax.vmap(one, (0, None, None))(ob, R, t), jax.vmap(points, (0, None, None))(ob, R, t))
+        bounds = jax.vmap(lambda item, r, tt: type(item).polytope_bounds(item, table, 0, table[0].mean(0), r, tt,
+                                                                         EARLY_ITERATIONS), (None, 0, 0))
+        return (*seg, jax.vmap(one, (0, None, None))(ob, R, t), jax.vmap(points, (0, None, None))(ob, R, t),
+                *jax.vmap(bounds, (0, None, None))(ob, R, t))
 
     out = {}
     with jax.enable_x64(True):
@@ -126,7 +131,7 @@ def values():
 
 def test_jax_kernels_equal_numpy_twins(values):
     scene, p_a, p_b, table, R, t, out = values
-    dist, lb, point, poly, points = out["float64"]
+    dist, lb, point, poly, points = out["float64"][:5]
     ob = scene_obstacles(scene)
     for k in list(range(4)) + list(range(scene.n_obstacles - 3, scene.n_obstacles)):
         item = ob.take(k)
@@ -144,6 +149,25 @@ def test_jax_kernels_equal_numpy_twins(values):
             else:
                 assert points[k, i] == -np.inf, (k, i)
 
+
+
+def test_piece_upper_bound_twins_and_lower_bounds_below_it(values):
+    """``polytope_bounds`` of the pieces (R8 of :mod:`larc_jax.obstacles.convex_shapes`: the better
+    of the bounding box's and the hull's searches, less ``inflate``): the kernel's (lower, upper)
+    after the middle round's steps equal the NumPy twin's, and no lower bound after any number of
+    steps exceeds the upper bound after any number (a pair stopped early could not have passed)."""
+    scene, _, _, table, R, t, out = values
+    poly, lower, upper = (out["float64"][i] for i in (3, 5, 6))
+    ob = scene_obstacles(scene)
+    for k in list(range(4)) + list(range(scene.n_obstacles - 3, scene.n_obstacles)):
+        item = ob.take(k)
+        for i in range(len(R)):
+            lb, ub = item.polytope_bounds_np(table[0], table[0].mean(0), R[i], t[i], EARLY_ITERATIONS)
+            assert (lower[k, i], upper[k, i]) == pytest.approx((lb, ub), abs=1e-12), (k, i)
+            assert math.isfinite(ub) and poly[k, i] <= ub + 1e-12
+            runs = [item.polytope_bounds_np(table[0], table[0].mean(0), R[i], t[i], n)
+                    for n in (0, EARLY_ITERATIONS, GJK_ITERATIONS)]
+            assert max(r[0] for r in runs) <= min(r[1] for r in runs) + 1e-12, (k, i, runs)
 
 def _truth(scene):
     """FCL's bracket (a BVH of its triangles, posed) and the cloud's points with their radius."""
@@ -178,7 +202,7 @@ def test_bounds_never_exceed_fcl_or_the_points(values, dtype):
     bound of the hull stage is also tight: within 1 mm of FCL's polytope-mesh distance at the
     median, and never above it."""
     scene, p_a, p_b, table, R, t, out = values
-    dist, lb, point, poly, _ = out[dtype]
+    dist, lb, point, poly, _ = out[dtype][:5]
     mesh, cloud, radius = _truth(scene)
     bracket = np.array(scene.point_sets.owner) == 0
     grid = np.linspace(0.0, 1.0, 101)
@@ -219,7 +243,7 @@ def test_point_bounds_never_exceed_fcl_and_beat_the_hull(values, dtype):
     import trimesh
 
     scene, p_a, p_b, table, R, t, out = values
-    _, _, _, poly, points = out[dtype]
+    _, _, _, poly, points = out[dtype][:5]
     ps = scene.point_sets
     n_fixed = scene.n_obstacles - ps.count
     gains = []

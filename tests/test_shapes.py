@@ -19,9 +19,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from larc_jax.errors import LarcInputError
+from larc_jax.leaf.rounds import EARLY_ITERATIONS
 from larc_jax.model.scene import Scene, read_scene, scene_from_dict
 from larc_jax.model.shapes import Shapes, shape_project
 from larc_jax.obstacles import AlignedBoxes, ConvexShapes, scene_obstacles, stack_scenes
+from larc_jax.obstacles.polytope import GJK_ITERATIONS
 from tests.capsule_audit import capsule_clearance, last_certified
 
 EX = Path(__file__).resolve().parent.parent / "configs" / "examples"
@@ -89,7 +91,10 @@ def jax_values():
     def polytopes(obstacles, V, centre, R, t, R2, t2):
         one = jax.vmap(lambda item, r, tt: type(item).polytope_lower_bound(item, V, 0, centre, r, tt), (None, 0, 0))
         over_items = jax.vmap(one, (0, None, None))
-        return over_items(obstacles, R, t), over_items(obstacles, R2, t2)
+        bounds = jax.vmap(jax.vmap(lambda item, r, tt: type(item).polytope_bounds(item, V, 0, centre, r, tt,
+                                                                                  EARLY_ITERATIONS), (None, 0, 0)),
+                          (0, None, None))(obstacles, R, t)
+        return over_items(obstacles, R, t), over_items(obstacles, R2, t2), *bounds
 
     out = {}
     with jax.enable_x64(True):
@@ -114,7 +119,7 @@ def test_stack_chooses_the_kind_and_keeps_box_only_scenes_aligned():
 
 def test_jax_kernels_equal_numpy_twins(jax_values):
     scene, p_a, p_b, V, centre, R, t, R2, t2, out = jax_values
-    dist, lb, point, poly, poly2 = out["float64"]
+    dist, lb, point, poly, poly2 = out["float64"][:5]
     obstacles = scene_obstacles(scene)
     for k in range(scene.n_obstacles):
         item = obstacles.take(k)
@@ -127,6 +132,31 @@ def test_jax_kernels_equal_numpy_twins(jax_values):
             assert poly[k, i] == pytest.approx(item.polytope_lower_bound_np(V[0], centre, R[i], t[i]), abs=1e-12)
         for i in range(len(R2)):
             assert poly2[k, i] == pytest.approx(item.polytope_lower_bound_np(V[0], centre, R2[i], t2[i]), abs=1e-12)
+
+
+def test_upper_bound_twins_and_lower_bounds_below_it(jax_values):
+    """``polytope_bounds`` (R8 of :mod:`larc_jax.obstacles.convex_shapes`): the kernel's (lower,
+    upper) after the middle round's steps equal the NumPy twin's, the lower one is
+    ``polytope_lower_bound``, and no lower bound after any number of steps (the full search's
+    included) exceeds the upper bound after any number: a pair the hull stage stops because its
+    upper bound is below the guard could not have passed with the full search. Over every kind
+    (box, sphere, cylinder, cone, an axis-aligned box), placements that overlap included."""
+    scene, _, _, V, centre, R, t, _, _, out = jax_values
+    poly, lower, upper = (out["float64"][i] for i in (3, 5, 6))
+    obstacles = scene_obstacles(scene)
+    finite = 0
+    for k in range(scene.n_obstacles):
+        item = obstacles.take(k)
+        for i in range(len(R)):
+            lb, ub = item.polytope_bounds_np(V[0], centre, R[i], t[i], EARLY_ITERATIONS)
+            assert (lower[k, i], upper[k, i]) == pytest.approx((lb, ub), abs=1e-12), (k, i)
+            assert lb == item.polytope_lower_bound_np(V[0], centre, R[i], t[i], EARLY_ITERATIONS)
+            assert poly[k, i] <= upper[k, i] + 1e-12  # the kernel's full search
+            runs = [item.polytope_bounds_np(V[0], centre, R[i], t[i], n) for n in (0, 2, EARLY_ITERATIONS, 8,
+                                                                                  GJK_ITERATIONS)]
+            assert max(r[0] for r in runs) <= min(r[1] for r in runs) + 1e-12, (k, i, runs)
+            finite += math.isfinite(ub)  # not the protocol's default (+inf: never stops)
+    assert finite == scene.n_obstacles * len(R)
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
@@ -156,7 +186,7 @@ def test_polytope_bounds_never_exceed_fcl(jax_values, dtype):
     """The hull-stage bound on one placement and on a union of two (the swept stage) never exceeds
     FCL's distance from any point of the placed polytopes (vertices and random convex combinations)."""
     scene, p_a, p_b, V, centre, R, t, R2, t2, out = jax_values
-    poly, poly2 = out[dtype][3:]
+    poly, poly2 = out[dtype][3:5]
     objects = _fcl_objects(scene)
     rng = np.random.default_rng(5)
     W = np.vstack([np.eye(V.shape[1]), rng.dirichlet(np.ones(V.shape[1]), 30)])  # points of the polytope
@@ -371,3 +401,4 @@ def test_boxes_only_shape_sets_skip_the_capsule_test_with_the_same_bounds():
 
 def _scene_set_any_rounded() -> bool:
     return stack_scenes([_scene()], np.float64).any_rounded is True
+

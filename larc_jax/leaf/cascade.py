@@ -43,7 +43,7 @@ Order of work (all of it deterministic, so every scheduler takes the same decisi
    axis alone (``iterations=0``, the direction from the part's centre to the obstacle: one
    support evaluation, about a thirteenth of the search); then
    :data:`~larc_jax.leaf.rounds.EARLY_ITERATIONS` steps with their upper bound
-   (:func:`hull_pair_bounds`; ``+inf`` for kinds without one, so far all but boxes) on the
+   (:func:`hull_pair_bounds`; ``+inf`` for a kind without one, none here) on the
    triples the first round left at or below their guard; then the full search (:data:`~larc_jax.obstacles.polytope.GJK_ITERATIONS`
    steps, from scratch) on those still undecided: at or below the guard, and an upper bound above
    ``guard - slack`` (:func:`~larc_jax.leaf.rounds.early_stop_slack`). Each round is a sound

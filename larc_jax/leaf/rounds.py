@@ -6,9 +6,9 @@ takes the rounds' values and asks for the next round only on the triples still u
 
 * The first round is the search's first axis alone (``iterations=0``), on every triple.
 * The middle round (:data:`EARLY_ITERATIONS` steps, every obstacle kind) decides a triple that
-  passes, and one that cannot pass (kinds that give an upper bound: boxes): its upper bound
-  (the search's last iterate, :func:`larc_jax.obstacles.polytope.polytope_box_bounds`) at or
-  below its guard less :func:`early_stop_slack`. No later step raises a lower bound above the
+  passes, and one that cannot pass: its upper bound (the searches' last iterates,
+  :func:`larc_jax.obstacles.polytope.polytope_box_bounds`; both obstacle kinds give one, the
+  protocol's default ``+inf`` never stops) at or below its guard less :func:`early_stop_slack`. No later step raises a lower bound above the
   upper one, so the full search would fail that triple too, up to rounding, which the slack covers
   many times over (a tie within it is searched in full: work, never a decision).
 * The full round (:data:`~larc_jax.obstacles.polytope.GJK_ITERATIONS` steps) takes the rest.

@@ -57,6 +57,17 @@ of the float64 matrix read from the quaternion):
   least, less ``inflate`` as in R6: a lower bound on the distance to every ball of the piece.
   It costs one search per point, so the hull stage runs it only as a third round, on the
   (part, cloud piece) pairs the hull bound leaves failing (:mod:`larc_jax.leaf.cascade`).
+* R8. The upper value of :meth:`polytope_bounds`, for stopping a failing pair early (never for
+  certifying). The polytope bound is ``f(s_box, s_axis, s_hull)``, the values of up to three GJK
+  searches (against the box, the axis, the piece's hull) put through R3's ``- radius``, the
+  larger of, R4's subtraction and R6's ``- inflate``: each step non-decreasing in each value
+  (``x - c - k u (|x| + c)`` with ``k u < 1`` included). Each search's last iterate bounds from
+  above every lower bound its later steps can reach (:mod:`larc_jax.obstacles.polytope`, "An
+  upper bound"), so ``f`` of the iterates bounds from above ``f`` of the full searches' values:
+  the polytope bound the full search would give, up to the rounding of ``f``'s few operations,
+  which the hull stage's slack covers (:func:`~larc_jax.leaf.rounds.early_stop_slack`). It is
+  not an upper bound on the distance to a round shape (the distance to an intersection may
+  exceed the distance to each of its sets); it need not be: it only predicts the full search.
 
 The NumPy float64 twins (suffix ``_np``) run the same steps with the float64 kernels.
 """
@@ -75,7 +86,8 @@ from ..model.shapes import local_geometry
 from .aligned_boxes import boxes_outward
 from .geometry import (point_box_distance, point_box_distance_np, segment_box_distance, segment_box_distance_np,
                        segment_box_lower_bound, segment_box_lower_bound_np)
-from .polytope import (GJK_ITERATIONS, polytope_box_lower_bound, polytope_box_lower_bound_np, polytope_hull_lower_bound,
+from .polytope import (GJK_ITERATIONS, polytope_box_bounds, polytope_box_bounds_np, polytope_box_lower_bound,
+                       polytope_hull_bounds, polytope_hull_bounds_np, polytope_hull_lower_bound,
                        polytope_hull_lower_bound_np)
 from .protocol import ObstacleSet
 
@@ -292,6 +304,14 @@ class ConvexShapes(ObstacleSet):
         return d
 
     def polytope_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
+        return self._polytope(vertices, part, centre, R, t, iterations, upper=False)
+
+    def polytope_bounds(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
+        # (lower, upper): the searches' last iterates through the same steps as their lower bounds
+        # (R8), so the full search's bound stays at or below the upper one.
+        return self._polytope(vertices, part, centre, R, t, iterations, upper=True)
+
+    def _polytope(self, vertices, part, centre, R, t, iterations, upper):
         dtype = R.dtype
         u = float(jnp.finfo(dtype).eps) / 2
         M = self.rotation.astype(dtype)
@@ -304,17 +324,26 @@ class ConvexShapes(ObstacleSet):
             R_local = jnp.matmul(M.T, R, precision=hi_prec)
             t_max = jnp.abs(dt).sum()
         t_local = jnp.matmul(dt, M, precision=hi_prec)
-        d = polytope_box_lower_bound(vertices, part, centre, R_local, t_local, self.lo, self.hi, iterations)
-        if self.any_rounded:
-            lo_z, hi_z = self._axis()
-            d_axis = polytope_box_lower_bound(vertices, part, centre, R_local, t_local, lo_z, hi_z, iterations)
-            d_cap = d_axis - self.radius - 4 * u * (jnp.abs(d_axis) + self.radius)
-            d = jnp.where(self.rounded, jnp.maximum(d, d_cap), d)
+        box = polytope_box_bounds if upper else polytope_box_lower_bound
+        d = box(vertices, part, centre, R_local, t_local, self.lo, self.hi, iterations)
+        d_axis = box(vertices, part, centre, R_local, t_local, *self._axis(), iterations) if self.any_rounded else None
+        d_hull = None
+        if self.any_polytope:
+            hull = polytope_hull_bounds if upper else polytope_hull_lower_bound
+            d_hull = hull(vertices, part, centre, R, t, self.vertices, iterations)
         v_max = jnp.max(jnp.abs(vertices[part].astype(dtype)).sum(axis=-1))
-        d = d - (2 * self.rot_err + 16 * u) * (v_max + t_max)  # R4
-        if not self.any_polytope:
-            return d
-        return self._piece(d, polytope_hull_lower_bound(vertices, part, centre, R, t, self.vertices, iterations))
+
+        def bound(d, d_axis, d_hull):  # non-decreasing in each search's value (R8)
+            if d_axis is not None:
+                d_cap = d_axis - self.radius - 4 * u * (jnp.abs(d_axis) + self.radius)
+                d = jnp.where(self.rounded, jnp.maximum(d, d_cap), d)
+            d = d - (2 * self.rot_err + 16 * u) * (v_max + t_max)  # R4
+            return d if d_hull is None else self._piece(d, d_hull)
+
+        if not upper:
+            return bound(d, d_axis, d_hull)
+        pick = lambda x, i: None if x is None else x[i]  # noqa: E731
+        return tuple(bound(pick(d, i), pick(d_axis, i), pick(d_hull, i)) for i in (0, 1))
 
     def points_lower_bound(self, vertices, part, centre, R, t, iterations: int = GJK_ITERATIONS):
         # R7: each point of a cloud's piece is a polytope of one vertex, searched on its own; the
@@ -378,23 +407,32 @@ class ConvexShapes(ObstacleSet):
         return d
 
     def polytope_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
+        return self.polytope_bounds_np(V, centre, R, t, iterations)[0]
+
+    def polytope_bounds_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> tuple[float, float]:
         M = np.asarray(self.rotation, np.float64)
         R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
         dt = t - np.asarray(self.centre, np.float64)
         R_local = np.einsum("ji,...jk->...ik", M, R)
         t_local = dt @ M
         u = _EPS64 / 2
-        d = polytope_box_lower_bound_np(V, centre, R_local, t_local, self.lo, self.hi, iterations)
+        searches = [polytope_box_bounds_np(V, centre, R_local, t_local, self.lo, self.hi, iterations)]
         if bool(self.rounded):
-            d_axis = polytope_box_lower_bound_np(V, centre, R_local, t_local, *self._axis_np(), iterations)
-            r = float(self.radius)
-            d = max(d, d_axis - r - 4 * u * (abs(d_axis) + r))
+            searches.append(polytope_box_bounds_np(V, centre, R_local, t_local, *self._axis_np(), iterations))
+        if self._is_piece():
+            hull = polytope_hull_bounds_np(V, centre, R, t, self.vertices, iterations)
         t_max = float(np.abs(dt).reshape(-1, 3).sum(axis=-1).max())
         v_max = float(np.abs(np.asarray(V, np.float64)).sum(axis=-1).max())
-        d = d - (2 * float(self.rot_err) + 16 * u) * (v_max + t_max)
-        if not self._is_piece():
-            return d
-        return self._piece_np(d, polytope_hull_lower_bound_np(V, centre, R, t, self.vertices, iterations))
+
+        def bound(i: int) -> float:  # the JAX kernel's composition, on the lower (0) or upper (1) values
+            d = searches[0][i]
+            if bool(self.rounded):
+                d_axis, r = searches[1][i], float(self.radius)
+                d = max(d, d_axis - r - 4 * u * (abs(d_axis) + r))
+            d = d - (2 * float(self.rot_err) + 16 * u) * (v_max + t_max)
+            return self._piece_np(d, hull[i]) if self._is_piece() else d
+
+        return bound(0), bound(1)
 
     def points_lower_bound_np(self, V, centre, R, t, iterations: int = GJK_ITERATIONS) -> float:
         if not (self.separate is not None and bool(self.separate)):

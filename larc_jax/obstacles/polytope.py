@@ -106,7 +106,8 @@ import numpy as np
 from ..lazy_jax import jax, jnp
 
 __all__ = ["GJK_ITERATIONS", "polytope_box_lower_bound", "polytope_box_lower_bound_np", "polytope_box_bounds",
-           "polytope_box_bounds_np", "polytope_hull_lower_bound", "polytope_hull_lower_bound_np"]
+           "polytope_box_bounds_np", "polytope_hull_lower_bound", "polytope_hull_lower_bound_np", "polytope_hull_bounds",
+           "polytope_hull_bounds_np"]
 
 GJK_ITERATIONS = 12
 """GJK steps per polytope-box pair (fixed: the kernel is vectorised over pairs)."""
@@ -266,6 +267,17 @@ def polytope_hull_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.
     same frame (rows may repeat). The obstacle's point of least ``w . x`` is a vertex picked with
     rounded scores, which may miss the true minimum by ``<= 12 u |w| max_j |y_j|``: ``max_j |y_j|_1``
     joins the subtracted term (module docstring), so (S) still holds for any axis."""
+    return _hull_search(vertices, part, centre, R, t, Y, iterations, upper=False)
+
+
+def polytope_hull_bounds(vertices: jax.Array, part: jax.Array, centre: jax.Array, R: jax.Array,
+                         t: jax.Array, Y: jax.Array, iterations: int = GJK_ITERATIONS):
+    """``(lower, upper)``: :func:`polytope_hull_lower_bound` and the norm of the search's last
+    iterate (as :func:`polytope_box_bounds`: for stopping a search early, never for certifying)."""
+    return _hull_search(vertices, part, centre, R, t, Y, iterations, upper=True)
+
+
+def _hull_search(vertices, part, centre, R, t, Y, iterations, upper):
     dtype = R.dtype
     Y = Y.astype(dtype)
 
@@ -274,7 +286,7 @@ def polytope_hull_lower_bound(vertices: jax.Array, part: jax.Array, centre: jax.
 
     scale = jnp.max(jnp.abs(Y).sum(axis=1))
     return _gjk(vertices, part, centre, R, t, lowest, lambda c: jnp.mean(Y, axis=0) - c, scale,
-                jnp.isfinite(Y).all(), iterations)
+                jnp.isfinite(Y).all(), iterations, upper)
 
 
 def _gjk(vertices, part, centre, R, t, lowest, seed, obstacle_scale, obstacle_finite, iterations, upper=False):
@@ -416,11 +428,16 @@ def polytope_box_bounds_np(V, centre, R, t, lo, hi, iterations: int = GJK_ITERAT
 
 def polytope_hull_lower_bound_np(V, centre, R, t, Y, iterations: int = GJK_ITERATIONS) -> float:
     """NumPy float64 reference of :func:`polytope_hull_lower_bound`."""
+    return polytope_hull_bounds_np(V, centre, R, t, Y, iterations)[0]
+
+
+def polytope_hull_bounds_np(V, centre, R, t, Y, iterations: int = GJK_ITERATIONS) -> tuple[float, float]:
+    """NumPy float64 reference of :func:`polytope_hull_bounds`."""
     Y = np.asarray(Y, np.float64)
     if not np.isfinite(Y).all():
-        return math.nan
+        return math.nan, math.nan
     return _gjk_np(V, centre, R, t, lambda w: Y[int(np.argmin(Y @ w))], lambda c: Y.mean(axis=0) - c,
-                   float(np.abs(Y).sum(axis=1).max()), iterations)[0]
+                   float(np.abs(Y).sum(axis=1).max()), iterations)
 
 
 def _gjk_np(V, centre, R, t, lowest, seed, obstacle_scale: float, iterations: int) -> tuple[float, float]:

@@ -27,11 +27,13 @@ float64 twin (suffix ``_np``) for the reference scheduler and ``larc verify``:
   (:mod:`larc_jax.obstacles.polytope`); 0 gives the first axis's bound alone, the cheap first
   round of the hull stage (:mod:`larc_jax.leaf.cascade`, step 4);
 - ``polytope_bounds(vertices, part, centre, R, t, iterations)``: ``(polytope_lower_bound,
-  upper)``, ``upper`` an upper bound on that distance up to rounding (the search's last iterate,
-  :func:`larc_jax.obstacles.polytope.polytope_box_bounds`), with which the hull stage stops
-  searching a pair that cannot pass (never to certify). The default is ``+inf`` (never stops a
-  failing pair early; a passing pair stops in every kind alike, so a certified leaf records the
-  same round whichever kind a batch stacks a box-only scene as);
+  upper)``, ``upper`` an upper bound, up to rounding, on every ``polytope_lower_bound`` a longer
+  search could give (the searches' last iterates: :func:`larc_jax.obstacles.polytope.polytope_box_bounds`;
+  for posed shapes R8 of :mod:`larc_jax.obstacles.convex_shapes`), with which the hull stage stops
+  searching a pair that cannot pass (never to certify). Both kinds here give one; the default, for
+  a kind that does not, is ``+inf`` (never stops a failing pair early; a passing pair stops in
+  every kind alike, so a certified leaf records the same round whichever kind a batch stacks a
+  box-only scene as);
 - ``points_lower_bound(vertices, part, centre, R, t, iterations)``: for an item that is a set of
   separate points (a point cloud's piece, :meth:`ObstacleSet.separate_points`), a lower bound on
   the distance from the polytope to its nearest point (the hull stage's third round); ``-inf``
