@@ -150,7 +150,6 @@ def test_jax_kernels_equal_numpy_twins(values):
                 assert points[k, i] == -np.inf, (k, i)
 
 
-
 def test_piece_upper_bound_twins_and_lower_bounds_below_it(values):
     """``polytope_bounds`` of the pieces (R8 of :mod:`larc_jax.obstacles.convex_shapes`: the better
     of the bounding box's and the hull's searches, less ``inflate``): the kernel's (lower, upper)
@@ -168,6 +167,7 @@ def test_piece_upper_bound_twins_and_lower_bounds_below_it(values):
             runs = [item.polytope_bounds_np(table[0], table[0].mean(0), R[i], t[i], n)
                     for n in (0, EARLY_ITERATIONS, GJK_ITERATIONS)]
             assert max(r[0] for r in runs) <= min(r[1] for r in runs) + 1e-12, (k, i, runs)
+
 
 def _truth(scene):
     """FCL's bracket (a BVH of its triangles, posed) and the cloud's points with their radius."""

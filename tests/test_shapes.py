@@ -401,4 +401,3 @@ def test_boxes_only_shape_sets_skip_the_capsule_test_with_the_same_bounds():
 
 def _scene_set_any_rounded() -> bool:
     return stack_scenes([_scene()], np.float64).any_rounded is True
-

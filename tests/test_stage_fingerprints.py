@@ -20,7 +20,7 @@ import pytest
 # plan the datasets again). Fixing that changes every one of its fingerprints: a rerun of all its
 # stages, truth included.
 @pytest.mark.parametrize("driver", ["tightness", "boundary_kinds"])
-def test_committed_results_are_up_to_date(driver, monkeypatch, capsys):
+def test_committed_results_are_up_to_date(driver, monkeypatch):
     import importlib
 
     module = importlib.import_module(f"experiments.{driver}")
