@@ -2,9 +2,10 @@
 
     python -m experiments.bench_tree [--json results/bench/tree_cpu.json] [--every 10] [--repeats 5] [--cpus N]
 
-The committed Stage B set, the capsule test (the device tree runs nothing else yet), float64, one
-prepared batch per run, so that only the scheduler differs (``certify``'s own work around it, the
-same for both, is left out):
+The committed Stage B set, float64, with the capsule test and with the cascade (the default: the
+hull stage after the capsule test, :mod:`larc_jax.engine.tree_hull` on the device), one prepared
+batch per run, so that only the scheduler differs (``certify``'s own work around it, the same for
+all, is left out):
 
 * **whole set** (160 trajectories in one call): the host frontier (``larc``'s scheduler today,
   one kernel call per depth), the device tree (one program), and fixed-fine (512 intervals a
@@ -18,8 +19,8 @@ same for both, is left out):
   leaf's clearance (XLA compiles the kernel inside the loop with its own fusions).
 
 ``--cpus N`` runs the process on its first N CPUs (set before JAX starts, so XLA's thread pool
-has N threads): the committed runs are on both cores of this machine (``tree_cpu``) and on one
-(``tree_cpu1``), which tells how much of a scheduler's speed is XLA's parallelism across cores.
+has N threads), which tells how much of a scheduler's speed is XLA's parallelism across cores; the
+committed run (``tree_cpu``) is on both cores of this machine.
 
 Writes the JSON and the Markdown table beside it (the tables the README quotes).
 """
@@ -60,16 +61,21 @@ def _schedulers(batch, scenes, n: int):
     }
 
 
-def _batch(robot, capsules, trajs, scenes):
-    """The trajectories prepared as ``certify`` prepares them for the capsule test."""
+ENCLOSURES = {"capsules": "capsule test", "hull": "cascade"}
+"""The enclosures measured (``RunSpec.enclosure``) and their names in the table."""
+
+
+def _batch(robot, capsules, trajs, scenes, enclosure: str):
+    """The trajectories prepared as ``certify`` prepares them for ``enclosure``."""
     from larc_jax.engine.batch import prepare
     from larc_jax.engine.certify import run_spec
     from larc_jax.leaf.interval import trajectory_roundings
+    from larc_jax.leaf.reference import leaf_enclosures
 
-    spec = run_spec(enclosure="capsules")
-    caps = capsules.with_padding(spec.padding_m)
-    bounds = trajectory_roundings(trajs, robot, caps, np.float64, None)
-    return prepare(trajs, scenes, robot, caps, spec.margin_m, np.float64, bounds, None)
+    spec = run_spec(enclosure=enclosure)
+    enc = leaf_enclosures(robot, capsules.with_padding(spec.padding_m), enclosure, None, None, False)
+    bounds = trajectory_roundings(trajs, robot, enc.capsules, np.float64, enc.hulls)
+    return prepare(trajs, scenes, robot, enc.capsules, spec.margin_m, np.float64, bounds, None, hulls=enc.hulls)
 
 
 def agreement(host, tree) -> dict:
@@ -90,25 +96,27 @@ def agreement(host, tree) -> dict:
 
 
 def table(out: dict) -> str:
-    w, p, a = out["whole_set"], out["paired"], out["agreement"]
-    names = list(w)
-    rows = [
-        f"Stage B: {out['trajectories']} trajectories, capsule test, float64, JAX device `{out['device']}`, "
-        f"{out['cpu_count']} CPU {'core' if out['cpu_count'] == 1 else 'cores'}, one run:",
-        "",
-        "| | " + " | ".join(names) + " |",
-        "|---|" + "---|" * len(names),
-        "| whole set: warm call | " + " | ".join(f"{w[m]['warm_s']:.3f} s" for m in names) + " |",
-        "| whole set: first call (compiling) | " + " | ".join(f"{w[m]['first_s']:.1f} s" for m in names) + " |",
-        f"| one trajectory per call ({p['n']}): median | " + " | ".join(f"{p[m]:.2f} ms" for m in names) + " |",
-        "",
-        f"Device tree against the host frontier: evaluations {a['evaluations']:,} "
-        f"({'equal' if a['evaluations_equal'] else 'DIFFERENT'} per trajectory and depth); leaves {a['leaves']:,} "
-        f"({'the same intervals' if a['leaves_equal'] else 'DIFFERENT intervals'}, decisions "
-        f"{'equal' if a['decisions_equal'] else 'DIFFERENT'}, guards {'equal' if a['guards_equal'] else 'DIFFERENT'}); "
-        f"clearance bit-identical on {a['clearance_bit_identical']:,} leaves, elsewhere within "
-        f"{a['clearance_max_abs_diff_m']:.1e} m.",
-    ]
+    rows = [f"Stage B: {out['trajectories']} trajectories, float64, JAX device `{out['device']}`, "
+            f"{out['cpu_count']} CPU {'core' if out['cpu_count'] == 1 else 'cores'}, one run:"]
+    for enclosure, label in ENCLOSURES.items():
+        run = out[enclosure]
+        w, p, a = run["whole_set"], run["paired"], run["agreement"]
+        names = list(w)
+        rows += [
+            "",
+            f"| {label} | " + " | ".join(names) + " |",
+            "|---|" + "---|" * len(names),
+            "| whole set: warm call | " + " | ".join(f"{w[m]['warm_s']:.3f} s" for m in names) + " |",
+            "| whole set: first call (compiling) | " + " | ".join(f"{w[m]['first_s']:.1f} s" for m in names) + " |",
+            f"| one trajectory per call ({p['n']}): median | " + " | ".join(f"{p[m]:.2f} ms" for m in names) + " |",
+            "",
+            f"{label.capitalize()}, device tree against the host frontier: evaluations {a['evaluations']:,} "
+            f"({'equal' if a['evaluations_equal'] else 'DIFFERENT'} per trajectory and depth); leaves {a['leaves']:,} "
+            f"({'the same intervals' if a['leaves_equal'] else 'DIFFERENT intervals'}, decisions "
+            f"{'equal' if a['decisions_equal'] else 'DIFFERENT'}, guards {'equal' if a['guards_equal'] else 'DIFFERENT'}); "
+            f"clearance bit-identical on {a['clearance_bit_identical']:,} leaves, elsewhere within "
+            f"{a['clearance_max_abs_diff_m']:.1e} m.",
+        ]
     return "\n".join(rows) + "\n"
 
 
@@ -117,6 +125,28 @@ def _machine() -> dict:
 
     return dict(device=str(jax.devices()[0]), machine=platform.processor() or platform.machine(),
                 cpu_count=len(os.sched_getaffinity(0)), load_average_start=os.getloadavg())
+
+
+def _measure(robot, capsules, trajs, scenes, enclosure: str, args) -> dict:
+    """The three schedulers on the whole set and one trajectory per call, and the agreement."""
+    out = {"whole_set": {}}
+    batch = _batch(robot, capsules, trajs, scenes, enclosure)
+    results = {}
+    for name, call in _schedulers(batch, scenes, len(trajs)).items():
+        results[name], first = _timed(call)
+        warm = min(_timed(call)[1] for _ in range(args.repeats))
+        out["whole_set"][name] = {"first_s": first, "warm_s": warm}
+        print(f"{enclosure:8s} {name:14s} whole set: warm {warm:.3f} s, first call {first:.1f} s", flush=True)
+    out["agreement"] = agreement(results["host frontier"], results["device tree"])
+    per = {name: [] for name in out["whole_set"]}
+    picked = list(range(0, len(trajs), args.every))
+    for k in picked:
+        one = _batch(robot, capsules, trajs[k:k + 1], scenes[k:k + 1], enclosure)
+        for name, call in _schedulers(one, scenes[k:k + 1], 1).items():
+            call()
+            per[name].append(1e3 * statistics.median(_timed(call)[1] for _ in range(args.repeats)))
+    out["paired"] = {"n": len(picked), **{name: statistics.median(v) for name, v in per.items()}}
+    return out
 
 
 def main(argv=None) -> int:
@@ -139,23 +169,9 @@ def main(argv=None) -> int:
 
     robot, capsules = load_robot_file(None)
     trajs, scenes = stageB_dataset(robot)
-    out = {**_machine(), "trajectories": len(trajs), "repeats": args.repeats, "whole_set": {}}
-    batch = _batch(robot, capsules, trajs, scenes)
-    results = {}
-    for name, call in _schedulers(batch, scenes, len(trajs)).items():
-        results[name], first = _timed(call)
-        warm = min(_timed(call)[1] for _ in range(args.repeats))
-        out["whole_set"][name] = {"first_s": first, "warm_s": warm}
-        print(f"{name:14s} whole set: warm {warm:.3f} s, first call {first:.1f} s", flush=True)
-    out["agreement"] = agreement(results["host frontier"], results["device tree"])
-    per = {name: [] for name in out["whole_set"]}
-    picked = list(range(0, len(trajs), args.every))
-    for k in picked:
-        one = _batch(robot, capsules, trajs[k:k + 1], scenes[k:k + 1])
-        for name, call in _schedulers(one, scenes[k:k + 1], 1).items():
-            call()
-            per[name].append(1e3 * statistics.median(_timed(call)[1] for _ in range(args.repeats)))
-    out["paired"] = {"n": len(picked), **{name: statistics.median(v) for name, v in per.items()}}
+    out = {**_machine(), "trajectories": len(trajs), "repeats": args.repeats}
+    for enclosure in ENCLOSURES:
+        out[enclosure] = _measure(robot, capsules, trajs, scenes, enclosure, args)
     out["load_average_end"] = os.getloadavg()
     text = table(out)
     print(text)

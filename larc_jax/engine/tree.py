@@ -1,12 +1,14 @@
 """The adaptive tree on the device: LARC's bisection as one jitted program per batch.
 
 The host-driven frontier (``larc`` in :mod:`larc_jax.engine.certify`) makes a kernel call per
-depth and moves every result to the host between calls. Here the whole tree (the capsule test,
-and the self test where the run checks self-collision) runs inside one ``jax.lax.while_loop``:
+depth and moves every result to the host between calls. Here the whole tree (the capsule test or
+the cascade, and the self test where the run checks self-collision) runs inside one
+``jax.lax.while_loop``:
 
 * a work stack of ``(trajectory, depth, index)`` intervals, ``capacity`` long, seeded with the
   roots; each step pops the top intervals (at most a step's width), evaluates them (the same
-  per-interval kernels as every scheduler, :func:`~larc_jax.engine.kernels.batched_intervals` and
+  per-interval kernels as every scheduler, :func:`~larc_jax.engine.kernels.batched_intervals` (or
+  its screened twin and the hull stage, :mod:`larc_jax.engine.tree_hull`) and
   :func:`~larc_jax.engine.kernels.self_intervals`, composed by :func:`~larc_jax.leaf.record.compose`,
   with the same dyadic ends, :func:`~larc_jax.leaf.interval.dyadic_ends`, rebased outwards, budget T1),
   writes the finished ones (passed, or at ``max_depth``) into preallocated leaf buffers at offsets
@@ -30,10 +32,11 @@ bits: XLA compiles the kernel inside the loop with its own fusions (fused multip
 host's kernel has none, or the reverse); the interval ends, which decide which interval a leaf is,
 are rounded as NumPy rounds them (:func:`dyadic_ends_jnp`).
 
-Scope: the capsule test, with the self test or without, against whole scenes (no hull or swept
-stage, no culling), on one device; :func:`supports` says when a batch qualifies. ``certify`` does
-not use it yet: it does not run the cascade, the default (README, "The depth loop on the device",
-has its timings against the host frontier).
+Scope: the capsule test or the cascade (the capsule test, the screen, then the hull stage on the
+lanes it leaves open, :mod:`larc_jax.engine.tree_hull`), with the self test or without, against
+whole scenes (no swept stage, no culling, no point-cloud pieces), on one device; :func:`supports`
+says when a batch qualifies. ``certify`` does not use it yet (README, "The depth loop on the
+device", has its timings against the host frontier).
 """
 
 from __future__ import annotations
@@ -47,12 +50,15 @@ from ..compilation import tracked_call
 from ..defaults import DEFAULT_MAX_DEPTH, MAX_DEPTH_LIMIT
 from ..lazy_jax import jax, jnp
 from ..leaf.clearance import BROAD_PHASE_K
-from ..leaf.record import LeafRecord, Stage, box_record, compose, self_record
+from ..leaf.rounds import early_stop_slack
+from ..leaf.record import LeafRecord, Stage, box_record, compose, needs_hull, self_record
 from .buckets import size_class
-from .kernels import batched_intervals, self_intervals
+from .kernels import (batched_intervals, evaluate_intervals_screened, evaluate_intervals_screened_broad,
+                      self_intervals)
+from .tree_hull import hull_stage_lanes
 
 __all__ = ["supports", "run_tree", "tree_program", "TreeLeaves", "dyadic_ends_jnp", "rebase_ends_jnp", "WIDE_STEP",
-           "NARROW_STEP", "STACK_SLACK", "LEAF_CAPACITY"]
+           "NARROW_STEP", "STACK_SLACK", "LEAF_CAPACITY", "MAX_TRIPLES"]
 
 WIDE_STEP = 256
 """Intervals a wide step evaluates (the stack holds at least half of it)."""
@@ -76,9 +82,20 @@ for the loop's room test. A deeper tree that fills them continues in a further c
 
 
 def supports(batch) -> bool:
-    """Whether the device tree runs ``batch``: the capsule test (and the self test, if the batch has
-    one) on whole scenes, one device."""
-    return batch.hulls is None and batch.swept is None and batch.cull is None and len(batch.devices) <= 1
+    """Whether the device tree runs ``batch``: the capsule test, or the cascade (the hull stage after
+    it) without point-cloud pieces and with at most :data:`MAX_TRIPLES` (part, item) pairs per
+    interval, with the self test or without, on whole scenes (unculled), one device, without the
+    swept stage."""
+    if batch.swept is not None or batch.cull is not None or len(batch.devices) > 1:
+        return False
+    return batch.hulls is None or (not batch.obstacles.separate_points().any()
+                                   and batch.hulls.n_parts * batch.obstacles.n_items <= MAX_TRIPLES)
+
+
+MAX_TRIPLES = 512
+"""The most (hull part, item) pairs per interval the device tree takes: each of its triple buffers
+holds that many (:func:`~larc_jax.engine.tree_hull.hull_sizes`); a larger scene goes to the host
+frontier."""
 
 
 def dyadic_ends_jnp(t_start, t_end, depth, index):
@@ -136,27 +153,49 @@ _LEAF_DTYPES = (np.int32, np.int32, np.int64, np.float64, np.float64, np.float64
 
 def _evaluate(args, broad: bool, tr, dp, ix, valid):
     """The leaf test of the intervals ``(tr, dp, ix)`` (lanes; ``valid`` those in use): their ends and
-    record, as :meth:`Batch._stages <larc_jax.engine.batch.Batch>` takes them."""
-    robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check = args
+    record, as :meth:`Batch._stages <larc_jax.engine.batch.Batch>` takes them (the hull stage:
+    :mod:`larc_jax.engine.tree_hull`)."""
+    robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade = args
     t0, t1 = dyadic_ends_jnp(t_start[tr], t_end[tr], dp, ix)
     a, b = rebase_ends_jnp(t0, t1, bounds.offset_s[tr])
-    kernel = functools.partial(batched_intervals, robot, capsules, splines, obstacles, bounds, tr, (scene_of[tr],), a,
-                               b, margin)
+    hulls, of_capsule, part_table, of_part, slack = (None,) * 5 if cascade is None else cascade
+    sel = (scene_of[tr],)
+
+    def step1(k):
+        """The capsule stage (broad phase ``k``): ``(g, guard, capsule, box, screen), exact``; with the
+        cascade, step 1 and the screen from one placement (larc_jax.leaf.cascade), else no screen."""
+        if cascade is None:
+            g, guard, cap, box, exact = batched_intervals(robot, capsules, splines, obstacles, bounds, tr, sel, a, b,
+                                                          margin, k)
+            return (g, guard, cap, box, g), exact
+        kernel = evaluate_intervals_screened if k is None else evaluate_intervals_screened_broad
+        g, guard, cap, box, exact, screen = kernel(robot, capsules, hulls, (of_capsule, part_table), splines, obstacles,
+                                                   bounds, tr, sel, a, b, margin)
+        return (g, guard, cap, box, screen), exact
+
     if broad:  # the broad phase, then every pair where it could not prove its pick
-        g, guard, cap, box, exact = kernel(BROAD_PHASE_K)
+        picked, exact = step1(BROAD_PHASE_K)
         redo = ~exact.astype(bool) & valid
 
         def all_pairs(picked):
-            return tuple(jnp.where(redo, x, y) for x, y in zip(kernel(None)[:4], picked))
+            return tuple(jnp.where(redo, x, y) for x, y in zip(step1(None)[0], picked))
 
-        g, guard, cap, box = jax.lax.cond(redo.any(), all_pairs, lambda picked: picked, (g, guard, cap, box))
+        out = jax.lax.cond(redo.any(), all_pairs, lambda picked: picked, picked)
     else:
-        g, guard, cap, box, _ = kernel(None)
+        out = step1(None)[0]
+    g, guard, cap, box = out[:4]
     record = box_record(g, guard, cap.astype(jnp.int64), box.astype(jnp.int64), Stage.CAPSULE, xp=jnp)
+    self_test = None
     if self_check is not None:
         gs, gds, c1, c2 = self_intervals(robot, capsules, splines, bounds, tr, a, b, self_check)
-        record = compose(record, self_record(gs, gds, c1.astype(jnp.int64), c2.astype(jnp.int64), xp=jnp), xp=jnp)
-    return t0, t1, record
+        self_test = self_record(gs, gds, c1.astype(jnp.int64), c2.astype(jnp.int64), xp=jnp)
+    if cascade is not None:  # the hull stage where the capsules fail and the screen leaves it a chance
+        need = valid & needs_hull(record, self_test, xp=jnp) & (out[4] > 0)
+        model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin, of_capsule, of_part,
+                 part_table.shape[0], slack)
+        hull = hull_stage_lanes(model, tr, a, b, need, tr.shape[0])
+        record = LeafRecord(*(jnp.where(need, h, r) for h, r in zip(hull, record)))
+    return t0, t1, compose(record, self_test, xp=jnp)
 
 
 def _step(args, max_depth, broad: bool, wide: int, narrow: int, state):
@@ -201,15 +240,17 @@ def _step(args, max_depth, broad: bool, wide: int, narrow: int, state):
 
 
 @functools.partial(jax.jit, static_argnames=("broad", "wide", "narrow", "leaf_capacity"))
-def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, stack, top,
-                 frontier, max_depth, *, broad: bool, wide: int, narrow: int, leaf_capacity: int):
+def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade, stack,
+                 top, frontier, max_depth, *, broad: bool, wide: int, narrow: int, leaf_capacity: int):
     """The tree from ``stack`` (trajectory, depth, index arrays, the first ``top`` in use) until the
     stack is empty or the next step could overflow it or the leaf buffers. Returns ``(stack, top,
     leaves, n_leaves, frontier)``: what is left, the leaf columns (:data:`_LEAF_DTYPES`; the first
     ``n_leaves`` in use) and ``frontier`` with this call's evaluations added. ``self_check``: as
-    :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self test). ``max_depth``
+    :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self test). ``cascade``:
+    ``(hulls, Links.of_capsule, Links.part_table, Links.of_part, early_stop_slack)`` for the
+    cascade (the hull stage after the capsule stage), or None (the capsule test). ``max_depth``
     is traced (an int32 scalar): every depth runs the same compiled program."""
-    args = (robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check)
+    args = (robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade)
     capacity = stack[0].shape[0]
     leaves = tuple(jnp.zeros(leaf_capacity, d) for d in _LEAF_DTYPES)
 
@@ -236,8 +277,9 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     trajectory's root down to ``max_depth``: the device program, called again with what is left
     while a call stops short. ``on_compile``: as :meth:`Batch.evaluate <larc_jax.engine.batch.Batch.evaluate>`."""
     if not supports(batch):
-        raise ValueError("run_tree: the device tree runs the capsule test (and the self test) on whole scenes, on one "
-                         "device, without the hull or swept stage")
+        raise ValueError("run_tree: the device tree runs the capsule test or the cascade (and the self test) on whole "
+                         f"scenes, on one device, without the swept stage or point-cloud pieces, at most {MAX_TRIPLES} "
+                         "(part, item) pairs per interval")
     if not (1 <= narrow <= wide <= leaf_capacity) or n_traj < 1 or not 0 <= max_depth <= MAX_DEPTH_LIMIT:
         raise ValueError(f"run_tree: need 1 <= narrow ({narrow}) <= wide ({wide}) <= leaf_capacity "
                          f"({leaf_capacity}), n_traj >= 1, 0 <= max_depth ({max_depth}) <= {MAX_DEPTH_LIMIT}")
@@ -251,8 +293,11 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     sp = batch.self_pairs
     self_check = None if sp is None else (sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64),
                                           batch.self_skip)
+    links = batch.links
+    cascade = None if batch.hulls is None else (batch.hulls, links.of_capsule, links.part_table, links.of_part,
+                                                np.float64(early_stop_slack(batch.dtype)))
     args = (batch.robot, batch.capsules, batch.splines, batch.obstacles, batch.bounds, pad(batch.scene_of),
-            pad(batch.t_start), pad(batch.t_end), batch.margin, self_check)
+            pad(batch.t_start), pad(batch.t_end), batch.margin, self_check, cascade)
     found, calls = [], 0
     while len(pending[0]):
         take = min(len(pending[0]), capacity - wide)  # the top of the pending stack, deepest first
