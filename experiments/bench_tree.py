@@ -19,8 +19,8 @@ all, is left out):
   leaf's clearance (XLA compiles the kernel inside the loop with its own fusions).
 
 ``--cpus N`` runs the process on its first N CPUs (set before JAX starts, so XLA's thread pool
-has N threads), which tells how much of a scheduler's speed is XLA's parallelism across cores; the
-committed run (``tree_cpu``) is on both cores of this machine.
+has N threads): the committed runs are on both cores of this machine (``tree_cpu``) and on one
+(``tree_cpu1``), which tells how much of a scheduler's speed is XLA's parallelism across cores.
 
 Writes the JSON and the Markdown table beside it (the tables the README quotes).
 """

@@ -88,7 +88,7 @@ def test_render_needs_its_figures(argv, capsys):
     assert e.value.code == 2 and "--render needs --json FILE" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name", ["tree_cpu"])
+@pytest.mark.parametrize("name", ["tree_cpu", "tree_cpu1"])
 def test_device_tree_table_is_rendered_and_agrees(name):
     """experiments.bench_tree's committed tables render from their figures, and the device tree made
     the host frontier's evaluations, leaves and decisions in those runs."""

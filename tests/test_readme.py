@@ -172,7 +172,7 @@ def test_benchmark_table_is_the_generated_one(name):
     assert README[i:j].strip() == (ROOT / "results" / "bench" / f"{name}.md").read_text().strip()
 
 
-@pytest.mark.parametrize("name", ["tree_cpu"])
+@pytest.mark.parametrize("name", ["tree_cpu", "tree_cpu1"])
 def test_tree_table_is_the_generated_one(name):
     """The README's device-tree tables are results/bench/NAME.md (experiments.bench_tree)."""
     begin = f"<!-- tree table: results/bench/{name}.md, written by experiments.bench_tree -->"
