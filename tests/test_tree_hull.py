@@ -129,8 +129,8 @@ def test_chunked_loop_visits_every_entry_once():
 
 
 def test_hull_sizes_cover_both_steps():
-    """The slots and round widths of a wide and a narrow step: positive, the first round twice the
-    slots, none wider than the slots' triples can need."""
+    """The slots and round widths of a wide and a narrow step: positive, the later rounds no wider
+    than the first, the first round twice the slots, and no more slots than lanes (at least 4)."""
     for lanes in (4, 16, 256):
         h, m0, m1, m2 = hull_sizes(lanes)
         assert 1 <= m2 <= m1 <= m0 == 2 * h and h <= max(lanes, 4)

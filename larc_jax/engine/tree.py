@@ -93,9 +93,9 @@ def supports(batch) -> bool:
 
 
 MAX_TRIPLES = 512
-"""The most (hull part, item) pairs per interval the device tree takes: each of its triple buffers
-holds that many (:func:`~larc_jax.engine.tree_hull.hull_sizes`); a larger scene goes to the host
-frontier."""
+"""The most (hull part, item) pairs per interval the device tree takes: the hull stage keeps its
+triples dense, ``H x P x N`` per slot loop (:func:`~larc_jax.engine.tree_hull.hull_stage_lanes`),
+so this bounds those arrays; a larger scene is left to the host frontier."""
 
 
 def dyadic_ends_jnp(t_start, t_end, depth, index):
@@ -193,7 +193,7 @@ def _evaluate(args, broad: bool, tr, dp, ix, valid):
         need = valid & needs_hull(record, self_test, xp=jnp) & (out[4] > 0)
         model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin, of_capsule, of_part,
                  part_table.shape[0], slack)
-        hull = hull_stage_lanes(model, tr, a, b, need, tr.shape[0])
+        hull = hull_stage_lanes(model, tr, a, b, need)
         record = LeafRecord(*(jnp.where(need, h, r) for h, r in zip(hull, record)))
     return t0, t1, compose(record, self_test, xp=jnp)
 

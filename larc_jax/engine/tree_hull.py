@@ -126,15 +126,15 @@ def combine_jnp(of_capsule, of_part, n_links: int, g_capsule, guard_capsule, tri
     return jnp.where(nan, jnp.nan, g), guard, capsule, item
 
 
-def hull_stage_lanes(model, tr, a, b, need, lanes: int):
-    """Steps 2-5 on the lanes ``need`` (n,) of a tree step of ``lanes`` lanes (``tr`` trajectory, ``a,
-    b`` rebased ends). ``model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin,
+def hull_stage_lanes(model, tr, a, b, need):
+    """Steps 2-5 on the lanes ``need`` (n,) of a tree step of n lanes (``tr`` trajectory, ``a, b``
+    rebased ends; the sizes are :func:`hull_sizes` of n). ``model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin,
     of_capsule, of_part, n_links, slack)``, ``slack`` :func:`~larc_jax.leaf.rounds.early_stop_slack`.
     Returns the lanes' hull-stage records (n,) (:class:`~larc_jax.leaf.record.LeafRecord`, stage HULL
     or NONE; read only on ``need``)."""
     robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin, of_capsule, of_part, n_links, slack = model
-    H, M0, M1, M2 = hull_sizes(lanes)
     n = tr.shape[0]
+    H, M0, M1, M2 = hull_sizes(n)
 
     def slots(state):
         """Steps 2-5 on the next ``H`` lanes still to do."""
