@@ -237,8 +237,10 @@ class Viewer:
         t = self.time_slider.value + dt
         self.time_slider.value = lo if t > hi else t
 
-    def run(self, fps: float = 30.0) -> None:
-        """Serve until Ctrl-C, animating when ``play`` is on; then stop the server.
+    def run(self, fps: float = 30.0, *, announce: str | None = None) -> None:
+        """Serve until Ctrl-C, animating when ``play`` is on; then stop the server. ``announce``
+        is printed once the Ctrl-C handler is in place: a process started in the background begins
+        with SIGINT ignored, so a Ctrl-C sent on reading a line printed earlier would be lost.
 
         In the main thread Ctrl-C only sets a flag that the loop reads: a KeyboardInterrupt raised
         inside viser's calls (a slider update waiting on the server's event loop) could leave
@@ -251,6 +253,8 @@ class Viewer:
         main = threading.current_thread() is threading.main_thread()
         previous = signal.signal(signal.SIGINT, lambda *_: stop.__setitem__(0, True)) if main else None
         try:
+            if announce is not None:
+                print(announce, flush=True)
             while not stop[0]:
                 time.sleep(1.0 / fps)
                 self.step(1.0 / fps)
@@ -281,10 +285,12 @@ def view(certificate=None, *, trajectories=None, scene=None, robot=None, leaves=
             raise LarcInputError("view: give a certificate file, or trajectory files and a scene file")
     viewer = Viewer(data, host=host, port=port)
     shown = "localhost" if host in ("0.0.0.0", "::") else host
+    url = f"larc view: open http://{shown}:{viewer.server.get_port()} in a browser (Ctrl-C to stop)"
     try:
-        print(f"larc view: open http://{shown}:{viewer.server.get_port()} in a browser (Ctrl-C to stop)", flush=True)
         if block:
-            viewer.run()
+            viewer.run(announce=url)
+        else:
+            print(url, flush=True)
     except KeyboardInterrupt:
         # Ctrl-C right after the URL, before run() took over: still stop the server, whose
         # threads would otherwise keep the process alive.
