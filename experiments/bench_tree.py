@@ -13,7 +13,10 @@ all, is left out):
   kernel shapes overlap, so fine's first call is measured after LARC's) and the best of
   ``--repeats`` warm calls;
 * **one trajectory per call** (every ``--every``-th trajectory): the median over the trajectories
-  of each one's median warm call, per scheduler;
+  of each one's median warm call, per scheduler; for the device tree also the steps its loop runs
+  (:attr:`~larc_jax.engine.tree.TreeLeaves.steps`), a call on the root alone (one step: what
+  a call costs whatever its work) and the time of each further step (the call less that, over the
+  steps less one), which is what one trajectory's time grows with;
 * **agreement**: the device tree's evaluations per depth and trajectory, its leaves (trajectory,
   depth, index, ends) and decisions against the host frontier's, and the largest difference of a
   leaf's clearance (XLA compiles the kernel inside the loop with its own fusions).
@@ -110,6 +113,10 @@ def table(out: dict) -> str:
             "| whole set: first call (compiling) | " + " | ".join(f"{w[m]['first_s']:.1f} s" for m in names) + " |",
             f"| one trajectory per call ({p['n']}): median | " + " | ".join(f"{p[m]:.2f} ms" for m in names) + " |",
             "",
+            f"{label.capitalize()}, device tree, one trajectory per call (medians): {p['tree_steps']:.0f} steps of its "
+            f"loop; a call of one step on one interval (the root alone: the call's fixed cost) {p['tree_root_ms']:.2f} ms; "
+            f"each further step {p['tree_us_per_step']:.0f} µs.",
+            "",
             f"{label.capitalize()}, device tree against the host frontier: evaluations {a['evaluations']:,} "
             f"({'equal' if a['evaluations_equal'] else 'DIFFERENT'} per trajectory and depth); leaves {a['leaves']:,} "
             f"({'the same intervals' if a['leaves_equal'] else 'DIFFERENT intervals'}, decisions "
@@ -128,7 +135,10 @@ def _machine() -> dict:
 
 
 def _measure(robot, capsules, trajs, scenes, enclosure: str, args) -> dict:
-    """The three schedulers on the whole set and one trajectory per call, and the agreement."""
+    """The three schedulers on the whole set and one trajectory per call (the device tree's steps,
+    its one-step call and its time per further step beside), and the agreement."""
+    from larc_jax.engine.tree import run_tree
+
     out = {"whole_set": {}}
     batch = _batch(robot, capsules, trajs, scenes, enclosure)
     results = {}
@@ -139,13 +149,20 @@ def _measure(robot, capsules, trajs, scenes, enclosure: str, args) -> dict:
         print(f"{enclosure:8s} {name:14s} whole set: warm {warm:.3f} s, first call {first:.1f} s", flush=True)
     out["agreement"] = agreement(results["host frontier"], results["device tree"])
     per = {name: [] for name in out["whole_set"]}
+    steps, floor = [], []
     picked = list(range(0, len(trajs), args.every))
     for k in picked:
         one = _batch(robot, capsules, trajs[k:k + 1], scenes[k:k + 1], enclosure)
         for name, call in _schedulers(one, scenes[k:k + 1], 1).items():
-            call()
+            steps.append(call().steps) if name == "device tree" else call()
             per[name].append(1e3 * statistics.median(_timed(call)[1] for _ in range(args.repeats)))
-    out["paired"] = {"n": len(picked), **{name: statistics.median(v) for name, v in per.items()}}
+        root = lambda: run_tree(one, 1, 0)  # noqa: E731 - one step, one interval: the call's fixed cost
+        root()
+        floor.append(1e3 * statistics.median(_timed(root)[1] for _ in range(args.repeats)))
+    out["paired"] = {"n": len(picked), **{name: statistics.median(v) for name, v in per.items()},
+                     "tree_steps": statistics.median(steps), "tree_root_ms": statistics.median(floor),
+                     "tree_us_per_step": statistics.median(
+                         1e3 * (ms - f) / max(1, s - 1) for ms, f, s in zip(per["device tree"], floor, steps))}
     return out
 
 

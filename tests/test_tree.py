@@ -10,7 +10,7 @@ import pytest
 
 from larc_jax.engine.batch import prepare
 from larc_jax.engine.certify import _Names, _larc_batched, run_spec  # noqa: PLC2701 - the host frontier is the reference
-from larc_jax.engine.tree import dyadic_ends_jnp, rebase_ends_jnp, run_tree, supports
+from larc_jax.engine.tree import NARROW_STEP, WIDE_STEP, dyadic_ends_jnp, rebase_ends_jnp, run_tree, supports
 from larc_jax.leaf.interval import dyadic_ends, rebase_ends, trajectory_roundings
 from larc_jax.leaf.self_collision import curve_ranges, load_separation, self_pairs
 from larc_jax.model.scene import Scene
@@ -77,6 +77,22 @@ def test_tree_matches_host_frontier_on_random_set(robot, capsules, random_set):
     frontier = _compare(batch, names, len(trajs), tree, ulps=8)
     assert tree.calls == 1 and frontier[:, MAX_DEPTH].sum() > 0  # some trajectory reached the deepest level
     assert 0 < (tree.record.stage > 0).mean() < 1
+    assert tree.steps == _steps(len(trajs), tree)
+
+
+def _steps(n_traj: int, tree, wide: int = WIDE_STEP, narrow: int = NARROW_STEP) -> int:
+    """The steps one call of the tree takes, replayed on the host from its leaves (an evaluated
+    interval that is not a leaf was bisected): each step pops the top ``wide`` intervals of the
+    stack (``narrow`` while it holds fewer than ``wide // 2``) and pushes both children of each
+    open one in their place, in order."""
+    leaves = set(zip(tree.traj.tolist(), tree.depth.tolist(), tree.index.tolist()))
+    stack, steps = [(k, 0, 0) for k in range(n_traj)], 0
+    while stack:
+        n = min(len(stack), wide if len(stack) >= wide // 2 else narrow)
+        popped, stack = stack[len(stack) - n:], stack[: len(stack) - n]
+        stack += [(k, d + 1, 2 * i + c) for k, d, i in popped if (k, d, i) not in leaves for c in (0, 1)]
+        steps += 1
+    return steps
 
 
 def test_tree_continues_when_buffers_fill(robot, capsules, random_set):

@@ -144,6 +144,9 @@ class TreeLeaves:
     frontier: np.ndarray
     calls: int
     """Device programs run (more than one when a stack or leaf buffer filled)."""
+    steps: int = 0
+    """Steps the programs' loops ran (each evaluates up to a step's width of intervals): what a
+    call's time grows with when the steps are narrow (``experiments.bench_tree``)."""
 
 
 _LEAF_DTYPES = (np.int32, np.int32, np.int64, np.float64, np.float64, np.float64, np.float64, np.int32, np.int32,
@@ -203,7 +206,7 @@ def _step(args, max_depth, broad: bool, wide: int, narrow: int, state):
     ``wide // 2``), evaluate them, write the finished ones into the leaf buffers and push both
     children of the open ones. Only the evaluation is under the branch: its operands are a step's
     lanes, not the buffers (a branch over the whole state would copy them each step)."""
-    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier = state
+    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier, steps = state
     capacity = s_traj.shape[0]
     use_wide = top >= wide // 2
     n = jnp.minimum(top, jnp.where(use_wide, wide, narrow))
@@ -236,7 +239,7 @@ def _step(args, max_depth, broad: bool, wide: int, narrow: int, state):
     s_index = s_index.at[left].set(2 * ix, mode="drop").at[right].set(2 * ix + 1, mode="drop")
     frontier = frontier.at[jnp.where(valid, tr, frontier.shape[0]), dp].add(1, mode="drop")
     return (s_traj, s_depth, s_index, (start + 2 * open_.sum()).astype(top.dtype), leaves,
-            (n_leaves + final.sum()).astype(n_leaves.dtype), frontier)
+            (n_leaves + final.sum()).astype(n_leaves.dtype), frontier, steps + 1)
 
 
 @functools.partial(jax.jit, static_argnames=("broad", "wide", "narrow", "leaf_capacity"))
@@ -244,8 +247,8 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
                  top, frontier, max_depth, *, broad: bool, wide: int, narrow: int, leaf_capacity: int):
     """The tree from ``stack`` (trajectory, depth, index arrays, the first ``top`` in use) until the
     stack is empty or the next step could overflow it or the leaf buffers. Returns ``(stack, top,
-    leaves, n_leaves, frontier)``: what is left, the leaf columns (:data:`_LEAF_DTYPES`; the first
-    ``n_leaves`` in use) and ``frontier`` with this call's evaluations added. ``self_check``: as
+    leaves, n_leaves, frontier, steps)``: what is left, the leaf columns (:data:`_LEAF_DTYPES`; the
+    first ``n_leaves`` in use), ``frontier`` with this call's evaluations added, and the steps run. ``self_check``: as
     :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self test). ``cascade``:
     ``(hulls, Links.of_capsule, Links.part_table, Links.of_part, early_stop_slack)`` for the
     cascade (the hull stage after the capsule stage), or None (the capsule test). ``max_depth``
@@ -258,10 +261,10 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
         top, n_leaves = state[3], state[5]
         return (top > 0) & (top + wide <= capacity) & (n_leaves + wide <= leaf_capacity)
 
-    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier = jax.lax.while_loop(
+    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier, steps = jax.lax.while_loop(
         room, functools.partial(_step, args, max_depth, broad, wide, narrow),
-        (*stack, top, leaves, jnp.int32(0), frontier))
-    return (s_traj, s_depth, s_index), top, leaves, n_leaves, frontier
+        (*stack, top, leaves, jnp.int32(0), frontier, jnp.int32(0)))
+    return (s_traj, s_depth, s_index), top, leaves, n_leaves, frontier, steps
 
 
 @functools.lru_cache(maxsize=None)
@@ -298,7 +301,7 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
                                                 np.float64(early_stop_slack(batch.dtype)))
     args = (batch.robot, batch.capsules, batch.splines, batch.obstacles, batch.bounds, pad(batch.scene_of),
             pad(batch.t_start), pad(batch.t_end), batch.margin, self_check, cascade)
-    found, calls = [], 0
+    found, calls, steps = [], 0, 0
     while len(pending[0]):
         take = min(len(pending[0]), capacity - wide)  # the top of the pending stack, deepest first
         stack = tuple(np.concatenate([p[len(p) - take:], np.zeros(capacity - take, p.dtype)]) for p in pending)
@@ -307,7 +310,7 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
             out = tracked_call(program, (*args, stack, np.int32(take), frontier, np.int32(max_depth)), on_compile)
             (s_traj, s_depth, s_index), top, leaves, n_leaves = jax.tree.map(np.asarray, out[:4])
             frontier = out[4]
-        calls += 1
+        calls, steps = calls + 1, steps + int(out[5])
         found.append([x[: int(n_leaves)] for x in leaves])
         pending = [np.concatenate([p, s[: int(top)]]) for p, s in zip(pending, (s_traj, s_depth, s_index))]
     traj, depth, index, t0, t1, *columns = (np.concatenate(c) for c in zip(*found))
@@ -315,4 +318,4 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     g, guard, cap, box, other, stage = (x[order] for x in columns)
     record = LeafRecord(g, guard, cap.astype(np.int64), box.astype(np.int64), other.astype(np.int64), stage)
     return TreeLeaves(traj[order].astype(np.int64), depth[order].astype(np.int64), index[order], t0[order], t1[order],
-                      record, np.array(frontier)[:n_traj, : max_depth + 1], calls)
+                      record, np.array(frontier)[:n_traj, : max_depth + 1], calls, steps)
