@@ -154,7 +154,9 @@ def _measure(robot, capsules, trajs, scenes, enclosure: str, args) -> dict:
     for k in picked:
         one = _batch(robot, capsules, trajs[k:k + 1], scenes[k:k + 1], enclosure)
         for name, call in _schedulers(one, scenes[k:k + 1], 1).items():
-            steps.append(call().steps) if name == "device tree" else call()
+            first = call()
+            if name == "device tree":
+                steps.append(first.steps)
             per[name].append(1e3 * statistics.median(_timed(call)[1] for _ in range(args.repeats)))
         root = lambda: run_tree(one, 1, 0)  # noqa: E731 - one step, one interval: the call's fixed cost
         root()
