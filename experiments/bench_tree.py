@@ -14,9 +14,10 @@ all, is left out):
   ``--repeats`` warm calls;
 * **one trajectory per call** (every ``--every``-th trajectory): the median over the trajectories
   of each one's median warm call, per scheduler; for the device tree also the steps its loop runs
-  (:attr:`~larc_jax.engine.tree.TreeLeaves.steps`), a call on the root alone (one step: what
-  a call costs whatever its work) and the time of each further step (the call less that, over the
-  steps less one), which is what one trajectory's time grows with;
+  (:attr:`~larc_jax.engine.tree.TreeLeaves.steps`, and of them the cascade's hull steps), a call
+  on the root alone (its first-stage step, and a hull step where the cascade sends the root to the
+  hull stage: what a call costs whatever its work) and the time of each further step (the call
+  less that, over the steps less the root call's), which is what one trajectory's time grows with;
 * **agreement**: the device tree's evaluations per depth and trajectory, its leaves (trajectory,
   depth, index, ends) and decisions against the host frontier's, and the largest difference of a
   leaf's clearance (XLA compiles the kernel inside the loop with its own fusions).
@@ -114,8 +115,9 @@ def table(out: dict) -> str:
             f"| one trajectory per call ({p['n']}): median | " + " | ".join(f"{p[m]:.2f} ms" for m in names) + " |",
             "",
             f"{label.capitalize()}, device tree, one trajectory per call (medians): {p['tree_steps']:.0f} steps of its "
-            f"loop; a call of one step on one interval (the root alone: the call's fixed cost) {p['tree_root_ms']:.2f} ms; "
-            f"each further step {p['tree_us_per_step']:.0f} µs.",
+            f"loop, {p['tree_hull_steps']:.0f} of them hull steps; a call on the root alone (the call's fixed cost: "
+            f"{p['tree_root_steps']:.0f} {'step' if p['tree_root_steps'] == 1 else 'steps'} on one interval) "
+            f"{p['tree_root_ms']:.2f} ms; each further step {p['tree_us_per_step']:.0f} µs.",
             "",
             f"{label.capitalize()}, device tree against the host frontier: evaluations {a['evaluations']:,} "
             f"({'equal' if a['evaluations_equal'] else 'DIFFERENT'} per trajectory and depth); leaves {a['leaves']:,} "
@@ -149,7 +151,7 @@ def _measure(robot, capsules, trajs, scenes, enclosure: str, args) -> dict:
         print(f"{enclosure:8s} {name:14s} whole set: warm {warm:.3f} s, first call {first:.1f} s", flush=True)
     out["agreement"] = agreement(results["host frontier"], results["device tree"])
     per = {name: [] for name in out["whole_set"]}
-    steps, floor = [], []
+    steps, hull_steps, floor, root_steps = [], [], [], []
     picked = list(range(0, len(trajs), args.every))
     for k in picked:
         one = _batch(robot, capsules, trajs[k:k + 1], scenes[k:k + 1], enclosure)
@@ -157,14 +159,17 @@ def _measure(robot, capsules, trajs, scenes, enclosure: str, args) -> dict:
             first = call()
             if name == "device tree":
                 steps.append(first.steps)
+                hull_steps.append(first.hull_steps)
             per[name].append(1e3 * statistics.median(_timed(call)[1] for _ in range(args.repeats)))
-        root = lambda: run_tree(one, 1, 0)  # noqa: E731 - one step, one interval: the call's fixed cost
-        root()
+        root = lambda: run_tree(one, 1, 0)  # noqa: E731 - the root alone: the call's fixed cost
+        root_steps.append(root().steps)  # its first-stage step, and a hull step where it goes to the hull stage
         floor.append(1e3 * statistics.median(_timed(root)[1] for _ in range(args.repeats)))
     out["paired"] = {"n": len(picked), **{name: statistics.median(v) for name, v in per.items()},
-                     "tree_steps": statistics.median(steps), "tree_root_ms": statistics.median(floor),
+                     "tree_steps": statistics.median(steps), "tree_hull_steps": statistics.median(hull_steps),
+                     "tree_root_ms": statistics.median(floor), "tree_root_steps": statistics.median(root_steps),
                      "tree_us_per_step": statistics.median(
-                         1e3 * (ms - f) / max(1, s - 1) for ms, f, s in zip(per["device tree"], floor, steps))}
+                         1e3 * (ms - f) / max(1, s - r) for ms, f, s, r in zip(per["device tree"], floor, steps,
+                                                                                root_steps))}
     return out
 
 

@@ -77,7 +77,7 @@ def test_tree_matches_host_frontier_on_random_set(robot, capsules, random_set):
     frontier = _compare(batch, names, len(trajs), tree, ulps=8)
     assert tree.calls == 1 and frontier[:, MAX_DEPTH].sum() > 0  # some trajectory reached the deepest level
     assert 0 < (tree.record.stage > 0).mean() < 1
-    assert tree.steps == _steps(len(trajs), tree)
+    assert tree.steps == _steps(len(trajs), tree) and tree.hull_steps == 0  # no hull queue without the cascade
 
 
 def _steps(n_traj: int, tree, wide: int = WIDE_STEP, narrow: int = NARROW_STEP) -> int:

@@ -9,6 +9,8 @@ import pytest
 
 from larc_jax.engine.batch import prepare
 from larc_jax.engine.certify import _Names, run_spec  # noqa: PLC2701 - the host frontier is the reference
+from larc_jax.compilation import tracked_call
+from larc_jax.engine import tree as tree_module
 from larc_jax.engine.tree import run_tree, supports
 from larc_jax.engine.tree_hull import chunked, combine_jnp, hull_sizes
 from larc_jax.lazy_jax import jax, jnp
@@ -54,9 +56,12 @@ def test_cascade_tree_matches_host_frontier(model, near_misses):
     tree = run_tree(batch, len(trajs), DEPTH)
     _compare(batch, names, len(trajs), tree, ulps=8, max_depth=DEPTH, hull_m=1e-13)
     assert tree.calls == 1 and (tree.record.stage == 2).sum() > 20 and 0 < (tree.record.stage > 0).mean() < 1
+    # Every hull-stage leaf went through a hull step, which takes up to 32 at once (20 trajectories:
+    # HULL_STEP doubled), and first-stage steps were run besides.
+    assert (tree.record.stage == 2).sum() / 32 <= tree.hull_steps < tree.steps
 
 
-def test_cascade_tree_on_posed_shapes_with_self_test_and_small_buffers(model, near_misses):
+def test_cascade_tree_on_posed_shapes_with_self_test_and_small_buffers(model, near_misses, monkeypatch):
     """Posed boxes (a convex kind of its own), the self test composed after the hull stage, and
     buffers so small the tree continues over many calls: still the host frontier's leaves."""
     trajs, scenes = near_misses
@@ -67,6 +72,19 @@ def test_cascade_tree_on_posed_shapes_with_self_test_and_small_buffers(model, ne
     tree = run_tree(batch, len(trajs), DEPTH, **SMALL)
     _compare(batch, names, len(trajs), tree, ulps=8, max_depth=DEPTH, hull_m=1e-13)
     assert tree.calls > 1 and (tree.record.stage == 2).sum() > 20
+    # Hull steps of 3 (the queue fills in most first-stage steps, and calls stop holding some):
+    # the same leaves and decisions.
+    held = []
+
+    def call(program, args, on_compile):  # what each call leaves on the hull queue
+        out = tracked_call(program, args, on_compile)
+        held.append(int(out[3]))
+        return out
+
+    monkeypatch.setattr(tree_module, "tracked_call", call)
+    odd = run_tree(batch, len(trajs), DEPTH, **SMALL, hull=3)
+    _compare(batch, names, len(trajs), odd, ulps=8, max_depth=DEPTH, hull_m=1e-13)
+    assert odd.calls == len(held) > 1 and odd.steps > tree.steps and max(held) > 0
 
 
 def test_point_cloud_pieces_stay_on_the_host(model, near_misses, monkeypatch):
@@ -128,9 +146,9 @@ def test_chunked_loop_visits_every_entry_once():
             np.testing.assert_array_equal(np.asarray(counts), np.where(mask, 2 * np.arange(37) + 1, 0))
 
 
-def test_hull_sizes_cover_both_steps():
-    """The slots and round widths of a wide and a narrow step: positive, the later rounds no wider
-    than the first, the first round twice the slots, and no more slots than lanes (at least 4)."""
-    for lanes in (4, 16, 256):
+def test_hull_sizes_take_a_hull_step_at_once():
+    """The slots and round widths of a hull step: one slot per lane (the slots' loop runs once),
+    positive, the later rounds no wider than the first, the first round twice the slots."""
+    for lanes in (1, 3, 16, 32):
         h, m0, m1, m2 = hull_sizes(lanes)
-        assert 1 <= m2 <= m1 <= m0 == 2 * h and h <= max(lanes, 4)
+        assert h == lanes and 1 <= m2 <= m1 <= m0 == 2 * h

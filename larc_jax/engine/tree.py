@@ -6,25 +6,34 @@ the cascade, and the self test where the run checks self-collision) runs inside 
 ``jax.lax.while_loop``:
 
 * a work stack of ``(trajectory, depth, index)`` intervals, ``capacity`` long, seeded with the
-  roots; each step pops the top intervals (at most a step's width), evaluates them (the same
-  per-interval kernels as every scheduler, :func:`~larc_jax.engine.kernels.batched_intervals` (or
-  its screened twin and the hull stage, :mod:`larc_jax.engine.tree_hull`) and
-  :func:`~larc_jax.engine.kernels.self_intervals`, composed by :func:`~larc_jax.leaf.record.compose`,
-  with the same dyadic ends, :func:`~larc_jax.leaf.interval.dyadic_ends`, rebased outwards, budget T1),
-  writes the finished ones (passed, or at ``max_depth``) into preallocated leaf buffers at offsets
-  given by a prefix sum, and pushes both children of every open one by a second prefix sum and
-  scatter (stream compaction);
-* two step sizes, both compiled into the program: a wide step while the stack holds at least half
-  of it, a narrow one below (one trajectory certified alone starts from one interval; a wide step
-  there would evaluate padding); only the evaluation is under the branch, never the buffers;
+  roots; a *first-stage* step pops the top intervals (at most a step's width) and evaluates their
+  capsule stage (with the cascade, the screened one) and self test with the same per-interval
+  kernels as every scheduler (:func:`~larc_jax.engine.kernels.batched_intervals` or its screened
+  twin, :func:`~larc_jax.engine.kernels.self_intervals`, composed by
+  :func:`~larc_jax.leaf.record.compose`), with the same dyadic ends,
+  :func:`~larc_jax.leaf.interval.dyadic_ends`, rebased outwards, budget T1;
+* with the cascade, the lanes the hull stage decides (the capsules fail a box, the screen leaves
+  the hulls a chance, the self test passes) go onto a *hull queue* with their self test's record;
+  a *hull* step, taken whenever the queue holds :data:`HULL_STEP` of them (or the stack is empty
+  and it holds any), runs the hull stage (:mod:`larc_jax.engine.tree_hull`) on them, a full step
+  at once: its fixed work would otherwise be paid by the one or two lanes of each narrow step;
+* either step writes its finished lanes (passed, or at ``max_depth``) into preallocated leaf
+  buffers at offsets given by a prefix sum, and pushes both children of every open one by a
+  second prefix sum and scatter (stream compaction);
+* two first-stage widths, both compiled into the program: a wide step while the stack holds at
+  least half of it, a narrow one below (one trajectory certified alone starts from one interval; a
+  wide step there would evaluate padding); only the evaluation is under the branch, never the
+  buffers;
 * the depth is traced and the buffers are sized by the batch's trajectory count (its power-of-two
   class), never by its depth: one compiled program per batch class, whatever ``max_depth``;
-* the loop stops when the stack is empty, or when the next step could overflow the stack or the leaf
-  buffers; the host then takes the leaves out and calls again with what is left (:func:`run_tree`).
-  A stopped call never changes a result: each interval's test depends on that interval alone.
+* the loop stops when the stack and the queue are empty, or when the next step could overflow the
+  stack or the leaf buffers; the host then takes the leaves out and calls again with what is left,
+  the queue's intervals included (evaluated again: an interval's evaluation is counted where it
+  finishes or opens, so it counts once) (:func:`run_tree`). A stopped call never changes a result:
+  each interval's test depends on that interval alone.
 
 Why the order does not matter: an interval is evaluated exactly when its parent was evaluated and
-failed (or it is a root), whatever order the stack takes them in, so the set of evaluated intervals,
+failed (or it is a root), whatever order the stack and the queue take them in, so the set of evaluated intervals,
 the leaves and their decisions equal those of the level-by-level frontier; :func:`run_tree`
 returns the leaves sorted as the certifiers' leaf tables are (by trajectory, then time), and the
 per-depth evaluation counts. A record's clearance may differ from the host frontier's in its last
@@ -58,7 +67,7 @@ from .kernels import (batched_intervals, evaluate_intervals_screened, evaluate_i
 from .tree_hull import hull_stage_lanes
 
 __all__ = ["supports", "run_tree", "tree_program", "TreeLeaves", "dyadic_ends_jnp", "rebase_ends_jnp", "WIDE_STEP",
-           "NARROW_STEP", "STACK_SLACK", "LEAF_CAPACITY", "MAX_TRIPLES"]
+           "NARROW_STEP", "HULL_STEP", "HULL_WIDE_FROM", "STACK_SLACK", "LEAF_CAPACITY", "MAX_TRIPLES"]
 
 WIDE_STEP = 256
 """Intervals a wide step evaluates (the stack holds at least half of it)."""
@@ -68,6 +77,19 @@ middle width (or four widths, 8 to 256, each step taking the smallest that holds
 slower one trajectory per call on Stage B and about doubled the compile time (measured while
 developing, README "The depth loop on the device"): a wide step mostly evaluates padding on a
 short stack, and every width is another compiled copy of the kernel."""
+HULL_STEP = 16
+"""Intervals a hull step takes from the hull queue (:func:`_step`) in a batch of fewer than
+:data:`HULL_WIDE_FROM` trajectories, twice as many from there. The lanes whose capsule stage fails
+and whose screen leaves the hulls a chance wait on the queue until this many have gathered (or
+the stack is empty), so that the hull stage's fixed work per run (its kinematics, its three
+rounds' loops) is shared by a full step rather than paid by the one or two lanes of each narrow
+step. Measured on Stage B against the hull stage run inside every step (README, "The depth loop
+on the device"): 16 gave one trajectory per call its best time and the whole set 0.95 of it, 32
+the whole set 0.89 of it."""
+HULL_WIDE_FROM = 16
+"""The batch class (:func:`~larc_jax.engine.buckets.size_class`) from which a hull step takes
+``2 * HULL_STEP`` intervals (its wide steps fill the queue fast); one compiled program per batch
+class either way."""
 STACK_SLACK = 2
 """The stack holds ``size_class(seeds) + STACK_SLACK * wide * (DEFAULT_MAX_DEPTH + 1)`` intervals: a
 step grows it by at most its width, and the loop stops before a step could overflow it (depth
@@ -147,21 +169,33 @@ class TreeLeaves:
     steps: int = 0
     """Steps the programs' loops ran (each evaluates up to a step's width of intervals): what a
     call's time grows with when the steps are narrow (``experiments.bench_tree``)."""
+    hull_steps: int = 0
+    """Of :attr:`steps`, the hull steps (the cascade's hull stage on the hull queue, :func:`_step`)."""
 
 
 _LEAF_DTYPES = (np.int32, np.int32, np.int64, np.float64, np.float64, np.float64, np.float64, np.int32, np.int32,
                 np.int32, np.int8)
 """Leaf buffer columns: trajectory, depth, index, t0, t1, then the record's (:class:`LeafRecord`)."""
+_RECORD_DTYPES = (np.float64, np.float64, np.int64, np.int64, np.int64, np.int8)
+"""A :class:`LeafRecord`'s columns as the kernels return them (the self test's, on the hull queue)."""
 
 
-def _evaluate(args, broad: bool, tr, dp, ix, valid):
-    """The leaf test of the intervals ``(tr, dp, ix)`` (lanes; ``valid`` those in use): their ends and
-    record, as :meth:`Batch._stages <larc_jax.engine.batch.Batch>` takes them (the hull stage:
-    :mod:`larc_jax.engine.tree_hull`)."""
-    robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade = args
+def _ends(args, tr, dp, ix):
+    """The lanes' dyadic ends, and those ends rebased to the knot interval's start (outwards)."""
+    bounds, t_start, t_end = args[4], args[6], args[7]
     t0, t1 = dyadic_ends_jnp(t_start[tr], t_end[tr], dp, ix)
-    a, b = rebase_ends_jnp(t0, t1, bounds.offset_s[tr])
-    hulls, of_capsule, part_table, of_part, slack = (None,) * 5 if cascade is None else cascade
+    return (t0, t1, *rebase_ends_jnp(t0, t1, bounds.offset_s[tr]))
+
+
+def _first_stage(args, broad: bool, tr, dp, ix, valid, queued):
+    """The capsule stage (with the cascade, the screened one) and the self test on the lanes ``(tr,
+    dp, ix)`` (``valid`` those in use), as :meth:`Batch._stages <larc_jax.engine.batch.Batch>`
+    takes them: ``(t0, t1, record, to_hull, self columns)``, ``to_hull`` the lanes the hull stage
+    decides (the capsules fail a box and the screen leaves the hulls a chance) and the self test's
+    record columns, which go with them to the hull queue (``queued`` is not read here)."""
+    robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade = args
+    t0, t1, a, b = _ends(args, tr, dp, ix)
+    hulls, of_capsule, part_table = (None,) * 3 if cascade is None else cascade[:3]
     sel = (scene_of[tr],)
 
     def step1(k):
@@ -192,107 +226,157 @@ def _evaluate(args, broad: bool, tr, dp, ix, valid):
     if self_check is not None:
         gs, gds, c1, c2 = self_intervals(robot, capsules, splines, bounds, tr, a, b, self_check)
         self_test = self_record(gs, gds, c1.astype(jnp.int64), c2.astype(jnp.int64), xp=jnp)
+    to_hull = jnp.zeros(tr.shape, bool)
     if cascade is not None:  # the hull stage where the capsules fail and the screen leaves it a chance
-        need = valid & needs_hull(record, self_test, xp=jnp) & (out[4] > 0)
-        model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin, of_capsule, of_part,
-                 part_table.shape[0], slack)
-        hull = hull_stage_lanes(model, tr, a, b, need)
-        record = LeafRecord(*(jnp.where(need, h, r) for h, r in zip(hull, record)))
-    return t0, t1, compose(record, self_test, xp=jnp)
+        to_hull = valid & needs_hull(record, self_test, xp=jnp) & (out[4] > 0)
+    return t0, t1, compose(record, self_test, xp=jnp), to_hull, () if self_test is None else tuple(self_test)
 
 
-def _step(args, max_depth, broad: bool, wide: int, narrow: int, state):
-    """One step: pop up to ``wide`` intervals off the stack (``narrow`` while it holds fewer than
-    ``wide // 2``), evaluate them, write the finished ones into the leaf buffers and push both
-    children of the open ones. Only the evaluation is under the branch: its operands are a step's
-    lanes, not the buffers (a branch over the whole state would copy them each step)."""
-    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier, steps = state
-    capacity = s_traj.shape[0]
-    use_wide = top >= wide // 2
-    n = jnp.minimum(top, jnp.where(use_wide, wide, narrow))
-    start = top - n
+def _hull_stage(args, broad: bool, tr, dp, ix, valid, queued):
+    """The hull stage (:mod:`larc_jax.engine.tree_hull`) on the lanes ``(tr, dp, ix)`` taken from the
+    hull queue (``valid`` those in use; ``queued``: their self test's record columns, saved by
+    :func:`_first_stage`), composed with the self test as :func:`_first_stage` composes the capsule
+    stage's. Returns what :func:`_first_stage` returns (no lane goes to the queue again)."""
+    robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade = args
+    hulls, of_capsule, part_table, of_part, slack = cascade
+    t0, t1, a, b = _ends(args, tr, dp, ix)
+    model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin, of_capsule, of_part,
+             part_table.shape[0], slack)
+    record = hull_stage_lanes(model, tr, a, b, valid)
+    self_test = LeafRecord(*queued) if queued else None
+    return t0, t1, compose(record, self_test, xp=jnp), jnp.zeros(tr.shape, bool), queued
+
+
+def _padded(stage, lanes: int, wide: int):
+    """``stage`` on the first ``lanes`` of a step's ``wide`` lanes (the rest are never valid there),
+    its outputs padded back to ``wide``."""
+
+    def run(args, broad, *lane_arrays):  # noqa: D401
+        cut = jax.tree.map(lambda x: x[:lanes], lane_arrays)
+        out = stage(args, broad, *cut)
+        return jax.tree.map(lambda x: jnp.concatenate([x, jnp.zeros((wide - lanes,), x.dtype)]), out)
+
+    return run
+
+
+def _step(args, max_depth, broad: bool, widths, state):
+    """One step. A *first-stage* step pops up to ``wide`` intervals off the stack (``narrow`` while it
+    holds fewer than ``wide // 2``) and evaluates their capsule stage and self test; a *hull* step,
+    taken whenever the hull queue holds ``hull`` intervals (or the stack is empty and it holds any),
+    pops up to ``hull`` of them and runs their hull stage. Either writes its finished lanes into the
+    leaf buffers and pushes both children of its open ones onto the stack; a first-stage step puts
+    the lanes the hull stage decides onto the hull queue instead. Only the evaluation is under the
+    branch: its operands are a step's lanes, not the buffers (a branch over the whole state would
+    copy them each step)."""
+    wide, narrow, hull = widths
+    stack, top, queue, n_queued, leaves, n_leaves, frontier, steps = state
+    (s_traj, s_depth, s_index), (q_traj, q_depth, q_index, *q_self) = stack, queue
+    capacity, q_capacity = s_traj.shape[0], q_traj.shape[0]
+    hull_now = (n_queued >= hull) | ((top == 0) & (n_queued > 0))
+    use_wide = ~hull_now & (top >= wide // 2)
+    n = jnp.where(hull_now, 0, jnp.minimum(top, jnp.where(use_wide, wide, narrow)))
+    m = jnp.where(hull_now, jnp.minimum(n_queued, hull), 0)
+    start, q_start = top - n, n_queued - m
     lane = jnp.arange(wide, dtype=top.dtype)
-    valid = lane < n
-    rows = jnp.where(valid, start + lane, 0)
+    valid = lane < n + m
+    rows, q_rows = jnp.where(valid, start + lane, 0), jnp.where(valid & hull_now, q_start + lane, 0)
     # A padding lane evaluates trajectory 0's root (a real interval); nothing it computes is kept.
-    tr = jnp.where(valid, s_traj[rows], 0)
-    dp = jnp.where(valid, s_depth[rows], 0)
-    ix = jnp.where(valid, s_index[rows], 0)
-
-    def narrow_step(lanes):  # the first `narrow` lanes, the rest padded (never valid in a narrow step)
-        out = _evaluate(args, broad, *(x[:narrow] for x in lanes))
-        return jax.tree.map(lambda x: jnp.concatenate([x, jnp.zeros((wide - narrow,), x.dtype)]), out)
-
-    t0, t1, record = jax.lax.cond(use_wide, lambda lanes: _evaluate(args, broad, *lanes), narrow_step,
-                                  (tr, dp, ix, valid))
+    tr, dp, ix = (jnp.where(valid, jnp.where(hull_now, q[q_rows], s[rows]), 0)
+                  for q, s in ((q_traj, s_traj), (q_depth, s_depth), (q_index, s_index)))
+    queued = tuple(q[q_rows] for q in q_self)
+    branches = [_padded(_first_stage, narrow, wide), _first_stage]
+    if args[-1] is not None:
+        branches.append(_padded(_hull_stage, hull, wide))
+    branch = jnp.where(hull_now, 2, jnp.where(use_wide, 1, 0))
+    t0, t1, record, to_hull, self_cols = jax.lax.switch(
+        branch, [functools.partial(stage, args, broad) for stage in branches], tr, dp, ix, valid, queued)
     passed = record.stage > 0  # g > guard for every stage that ran; NaN never passes (larc_jax.leaf.record)
-    final = valid & (passed | (dp == max_depth))
-    open_ = valid & ~final
+    done = valid & ~to_hull
+    final = done & (passed | (dp == max_depth))
+    open_ = done & ~final
     # Stream compaction by prefix sums; a write to an index past the end is dropped.
     at = jnp.where(final, n_leaves + jnp.cumsum(final) - 1, leaves[0].shape[0])
     leaves = tuple(buf.at[at].set(x.astype(buf.dtype), mode="drop")
                    for buf, x in zip(leaves, (tr, dp, ix, t0, t1, *record)))
     first = start + 2 * (jnp.cumsum(open_) - 1)
     left, right = jnp.where(open_, first, capacity), jnp.where(open_, first + 1, capacity)
-    s_traj = s_traj.at[left].set(tr, mode="drop").at[right].set(tr, mode="drop")
-    s_depth = s_depth.at[left].set(dp + 1, mode="drop").at[right].set(dp + 1, mode="drop")
-    s_index = s_index.at[left].set(2 * ix, mode="drop").at[right].set(2 * ix + 1, mode="drop")
-    frontier = frontier.at[jnp.where(valid, tr, frontier.shape[0]), dp].add(1, mode="drop")
-    return (s_traj, s_depth, s_index, (start + 2 * open_.sum()).astype(top.dtype), leaves,
-            (n_leaves + final.sum()).astype(n_leaves.dtype), frontier, steps + 1)
+    stack = tuple(s.at[left].set(x, mode="drop").at[right].set(y, mode="drop")
+                  for s, x, y in ((s_traj, tr, tr), (s_depth, dp + 1, dp + 1), (s_index, 2 * ix, 2 * ix + 1)))
+    to = jnp.where(to_hull, q_start + jnp.cumsum(to_hull) - 1, q_capacity)
+    queue = tuple(q.at[to].set(x.astype(q.dtype), mode="drop") for q, x in zip(queue, (tr, dp, ix, *self_cols)))
+    # An interval counts once, where it finishes or opens: one the queue holds when a call stops
+    # is evaluated again in the next call (run_tree).
+    frontier = frontier.at[jnp.where(done, tr, frontier.shape[0]), dp].add(1, mode="drop")
+    return (stack, (start + 2 * open_.sum()).astype(top.dtype), queue,
+            (q_start + to_hull.sum()).astype(n_queued.dtype), leaves, (n_leaves + final.sum()).astype(n_leaves.dtype),
+            frontier, steps.at[hull_now.astype(jnp.int32)].add(1))
 
 
-@functools.partial(jax.jit, static_argnames=("broad", "wide", "narrow", "leaf_capacity"))
+@functools.partial(jax.jit, static_argnames=("broad", "wide", "narrow", "hull", "leaf_capacity"))
 def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade, stack,
-                 top, frontier, max_depth, *, broad: bool, wide: int, narrow: int, leaf_capacity: int):
+                 top, frontier, max_depth, *, broad: bool, wide: int, narrow: int, hull: int, leaf_capacity: int):
     """The tree from ``stack`` (trajectory, depth, index arrays, the first ``top`` in use) until the
-    stack is empty or the next step could overflow it or the leaf buffers. Returns ``(stack, top,
-    leaves, n_leaves, frontier, steps)``: what is left, the leaf columns (:data:`_LEAF_DTYPES`; the
-    first ``n_leaves`` in use), ``frontier`` with this call's evaluations added, and the steps run. ``self_check``: as
-    :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self test). ``cascade``:
-    ``(hulls, Links.of_capsule, Links.part_table, Links.of_part, early_stop_slack)`` for the
-    cascade (the hull stage after the capsule stage), or None (the capsule test). ``max_depth``
-    is traced (an int32 scalar): every depth runs the same compiled program."""
+    stack and the hull queue are empty or the next step could overflow the stack or the leaf
+    buffers. Returns ``(stack, top, queue, n_queued, leaves, n_leaves, frontier, steps)``: what is
+    left (``queue``: the hull queue's trajectory, depth and index columns, then the saved self-test
+    columns, the first ``n_queued`` in use), the leaf columns (:data:`_LEAF_DTYPES`; the first
+    ``n_leaves`` in use), ``frontier`` with this call's evaluations added, and the steps run
+    (first-stage steps, hull steps).
+    ``self_check``: as :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self
+    test). ``cascade``: ``(hulls, Links.of_capsule, Links.part_table, Links.of_part,
+    early_stop_slack)`` for the cascade (the hull stage after the capsule stage), or None (the
+    capsule test). ``max_depth`` is traced (an int32 scalar): every depth runs the same compiled
+    program."""
     args = (robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade)
     capacity = stack[0].shape[0]
     leaves = tuple(jnp.zeros(leaf_capacity, d) for d in _LEAF_DTYPES)
+    # A first-stage step adds at most `wide` lanes to a queue holding fewer than `hull`.
+    q_dtypes = (*(s.dtype for s in stack), *(() if self_check is None else _RECORD_DTYPES))
+    queue = tuple(jnp.zeros(wide + hull, d) for d in q_dtypes)
+    grow = max(wide, 2 * hull)
 
     def room(state):
-        top, n_leaves = state[3], state[5]
-        return (top > 0) & (top + wide <= capacity) & (n_leaves + wide <= leaf_capacity)
+        top, n_queued, n_leaves = state[1], state[3], state[5]
+        return (((top > 0) | (n_queued > 0)) & (top + grow <= capacity) & (n_leaves + wide <= leaf_capacity))
 
-    s_traj, s_depth, s_index, top, leaves, n_leaves, frontier, steps = jax.lax.while_loop(
-        room, functools.partial(_step, args, max_depth, broad, wide, narrow),
-        (*stack, top, leaves, jnp.int32(0), frontier, jnp.int32(0)))
-    return (s_traj, s_depth, s_index), top, leaves, n_leaves, frontier, steps
+    return jax.lax.while_loop(room, functools.partial(_step, args, max_depth, broad, (wide, narrow, hull)),
+                              (stack, top, queue, jnp.int32(0), leaves, jnp.int32(0), frontier,
+                               jnp.zeros(2, jnp.int32)))
 
 
 @functools.lru_cache(maxsize=None)
-def _program(broad: bool, wide: int, narrow: int, leaf_capacity: int):
+def _program(broad: bool, wide: int, narrow: int, hull: int, leaf_capacity: int):
     """One callable per static configuration (:func:`~larc_jax.compilation.tracked_call` knows a
     shape it has seen by the callable)."""
-    return functools.partial(tree_program, broad=broad, wide=wide, narrow=narrow, leaf_capacity=leaf_capacity)
+    return functools.partial(tree_program, broad=broad, wide=wide, narrow=narrow, hull=hull,
+                             leaf_capacity=leaf_capacity)
 
 
 def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int = WIDE_STEP,
-             narrow: int = NARROW_STEP, leaf_capacity: int = LEAF_CAPACITY) -> TreeLeaves:
+             narrow: int = NARROW_STEP, hull: int | None = None, leaf_capacity: int = LEAF_CAPACITY) -> TreeLeaves:
     """LARC on the first ``n_traj`` trajectories of ``batch`` (one :func:`supports`), from every
     trajectory's root down to ``max_depth``: the device program, called again with what is left
-    while a call stops short. ``on_compile``: as :meth:`Batch.evaluate <larc_jax.engine.batch.Batch.evaluate>`."""
+    while a call stops short. ``on_compile``: as :meth:`Batch.evaluate <larc_jax.engine.batch.Batch.evaluate>`.
+    ``hull``: a hull step's width (None: :data:`HULL_STEP` by the batch class)."""
     if not supports(batch):
         raise ValueError("run_tree: the device tree runs the capsule test or the cascade (and the self test) on whole "
                          f"scenes, on one device, without the swept stage or point-cloud pieces, at most {MAX_TRIPLES} "
                          "(part, item) pairs per interval")
-    if not (1 <= narrow <= wide <= leaf_capacity) or n_traj < 1 or not 0 <= max_depth <= MAX_DEPTH_LIMIT:
+    if hull is None:
+        hull = HULL_STEP if size_class(n_traj, 1) < HULL_WIDE_FROM else 2 * HULL_STEP
+    if (not (1 <= narrow <= wide <= leaf_capacity and 1 <= hull <= wide) or n_traj < 1
+            or not 0 <= max_depth <= MAX_DEPTH_LIMIT):
         raise ValueError(f"run_tree: need 1 <= narrow ({narrow}) <= wide ({wide}) <= leaf_capacity "
-                         f"({leaf_capacity}), n_traj >= 1, 0 <= max_depth ({max_depth}) <= {MAX_DEPTH_LIMIT}")
-    capacity = size_class(n_traj, 1) + STACK_SLACK * wide * (DEFAULT_MAX_DEPTH + 1)
+                         f"({leaf_capacity}), 1 <= hull ({hull}) <= wide, n_traj >= 1, 0 <= max_depth ({max_depth}) "
+                         f"<= {MAX_DEPTH_LIMIT}")
+    grow = max(wide, 2 * hull)
+    capacity = size_class(n_traj, 1) + STACK_SLACK * grow * (DEFAULT_MAX_DEPTH + 1)
     leaf_capacity = min(leaf_capacity, (size_class(n_traj, 1) << DEFAULT_MAX_DEPTH) + wide)  # LEAF_CAPACITY
     pending = [np.arange(n_traj, dtype=np.int32), np.zeros(n_traj, np.int32), np.zeros(n_traj, np.int64)]
     rows = size_class(len(batch.t_start), 1)  # per-trajectory arrays padded as the splines are (one shape per class)
     pad = lambda x: np.concatenate([x, np.repeat(x[:1], rows - len(x))])  # noqa: E731
     frontier = np.zeros((rows, MAX_DEPTH_LIMIT + 1), np.int64)
-    program = _program(bool(batch.use_broad_phase), wide, narrow, leaf_capacity)
+    program = _program(bool(batch.use_broad_phase), wide, narrow, hull, leaf_capacity)
     sp = batch.self_pairs
     self_check = None if sp is None else (sp.first, sp.second, sp.motion_a, np.asarray(sp.margin_m, np.float64),
                                           batch.self_skip)
@@ -301,21 +385,22 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
                                                 np.float64(early_stop_slack(batch.dtype)))
     args = (batch.robot, batch.capsules, batch.splines, batch.obstacles, batch.bounds, pad(batch.scene_of),
             pad(batch.t_start), pad(batch.t_end), batch.margin, self_check, cascade)
-    found, calls, steps = [], 0, 0
+    found, calls, steps = [], 0, np.zeros(2, np.int64)
     while len(pending[0]):
-        take = min(len(pending[0]), capacity - wide)  # the top of the pending stack, deepest first
+        take = min(len(pending[0]), capacity - grow)  # the top of the pending stack, deepest first
         stack = tuple(np.concatenate([p[len(p) - take:], np.zeros(capacity - take, p.dtype)]) for p in pending)
         pending = [p[: len(p) - take] for p in pending]
         with jax.enable_x64(True):
             out = tracked_call(program, (*args, stack, np.int32(take), frontier, np.int32(max_depth)), on_compile)
-            (s_traj, s_depth, s_index), top, leaves, n_leaves = jax.tree.map(np.asarray, out[:4])
-            frontier = out[4]
-        calls, steps = calls + 1, steps + int(out[5])
+            stack, top, queue, n_queued, leaves, n_leaves = jax.tree.map(np.asarray, out[:6])
+            frontier = out[6]
+        calls, steps = calls + 1, steps + np.asarray(out[7])
         found.append([x[: int(n_leaves)] for x in leaves])
-        pending = [np.concatenate([p, s[: int(top)]]) for p, s in zip(pending, (s_traj, s_depth, s_index))]
+        # What a stopped call left: its stack, and the hull queue's intervals (evaluated again).
+        pending = [np.concatenate([p, s[: int(top)], q[: int(n_queued)]]) for p, s, q in zip(pending, stack, queue)]
     traj, depth, index, t0, t1, *columns = (np.concatenate(c) for c in zip(*found))
     order = np.lexsort((t0, traj))
     g, guard, cap, box, other, stage = (x[order] for x in columns)
     record = LeafRecord(g, guard, cap.astype(np.int64), box.astype(np.int64), other.astype(np.int64), stage)
     return TreeLeaves(traj[order].astype(np.int64), depth[order].astype(np.int64), index[order], t0[order], t1[order],
-                      record, np.array(frontier)[:n_traj, : max_depth + 1], calls, steps)
+                      record, np.array(frontier)[:n_traj, : max_depth + 1], calls, int(steps.sum()), int(steps[1]))

@@ -1,12 +1,13 @@
 """The hull stage inside the device tree (:mod:`larc_jax.engine.tree`): steps 2-5 of the cascade
-(:mod:`larc_jax.leaf.cascade`) on the lanes of one tree step, with fixed shapes.
+(:mod:`larc_jax.leaf.cascade`) on the lanes of one hull step, with fixed shapes.
 
 The host cascade (:meth:`Batch._hull_stage <larc_jax.engine.batch.Batch>`) selects intervals,
 pairs and triples with NumPy between kernel calls; here every selection is a stream compaction
 (a prefix sum and a scatter) into a buffer whose size is fixed when the program compiles:
 
 * the lanes the capsule stage fails whose screen passes (the host's ``open_`` after
-  ``_hopeless``) are compacted into ``H`` *slots* (:func:`hull_sizes`); step 2 runs on the slots
+  ``_hopeless``; the tree's hull queue gathers them) are compacted into ``H`` *slots*, one per lane
+  of the step (:func:`hull_sizes`); step 2 runs on the slots
   with every capsule-box pair exact (:func:`~larc_jax.leaf.cascade.interval_pairs`: what the
   host's bounded call gives wherever its result could matter, :func:`~larc_jax.leaf.cascade.exact_enough`);
 * step 3 (:func:`~larc_jax.leaf.cascade.select_pairs`) marks the tried (link, item) pairs and
@@ -17,10 +18,10 @@ pairs and triples with NumPy between kernel calls; here every selection is a str
   compacts its triples ``M0``, ``M1`` or ``M2`` at a time (:func:`chunked`);
 * step 5 is :func:`combine_jnp`, :func:`~larc_jax.leaf.cascade.combine` on the dense arrays.
 
-Every compaction is a ``lax.while_loop`` that runs until nothing is left (the slots ``H`` lanes at a
-time, each round its buffer's width at a time): a step needing more than a buffer holds runs the
-loop again, so nothing overflows or is deferred, and a step that needs nothing runs no iteration.
-The sizes only trade padding (work in every iteration) against iterations.
+Every compaction is a ``lax.while_loop`` that runs until nothing is left (the slots once, each
+round its buffer's width at a time): a step needing more than a buffer holds runs the loop again,
+so nothing overflows or is deferred. The sizes only trade padding (work in every iteration)
+against iterations.
 
 The decisions are those of the host cascade: the same kernels (one program instead of several,
 so a value may differ in its last bit, as between any two programs) and the same rules. A
@@ -33,25 +34,16 @@ from ..lazy_jax import jax, jnp
 from ..leaf.record import LeafRecord, Stage, box_record
 from .kernels import batched_interval_pairs, hull_early, hull_first_axis, hull_pairs
 
-__all__ = ["HULL_LANES", "hull_sizes", "compact", "chunked", "link_min", "combine_jnp", "hull_stage_lanes"]
-
-HULL_LANES = 32
-"""Slots for the hull stage in one tree step (fewer when the step has fewer lanes). On the Stage B
-set the hull stage runs on 11 % of LARC's intervals (3,182 of 27,792) with 1.6 triples each: a
-wide step of 256 lanes needs about 28 slots."""
-
+__all__ = ["hull_sizes", "compact", "chunked", "link_min", "combine_jnp", "hull_stage_lanes"]
 
 def hull_sizes(lanes: int) -> tuple[int, int, int, int]:
-    """``(H, M0, M1, M2)`` for a step of ``lanes`` lanes: the hull stage's slots, and the triples each
-    round searches at once (first axis, middle round, full search). Sized from the Stage B set (LARC,
-    the cascade): the hull stage runs on 11 % of the intervals (3,182 of 27,792) with 1.6 triples
-    each; the middle round takes about a third of them, the full search 2 %. A step needing more
-    runs its loops again (module docstring); padding costs work in every run, so each size is
-    about what a step needs. The time of one trajectory per call moved by less than its noise
-    (about 10 %) between these sizes, twice or half of them, and narrow steps of 2 slots (measured
-    while developing)."""
-    h = min(HULL_LANES, max(4, lanes // 8))
-    return h, 2 * h, max(2, h // 2), max(2, h // 8)
+    """``(H, M0, M1, M2)`` for a hull step of ``lanes`` lanes: the hull stage's slots (one per lane),
+    and the triples each round searches at once (first axis, middle round, full search). Sized from
+    the Stage B set (LARC, the cascade): the hull stage runs with 1.6 triples an interval; the
+    middle round takes about a third of them, the full search 2 %. A step needing more runs its
+    loops again (module docstring); padding costs work in every run, so each size is about what a
+    step needs."""
+    return lanes, 2 * lanes, max(2, lanes // 2), max(2, lanes // 8)
 
 
 def compact(mask, size: int):
@@ -127,7 +119,7 @@ def combine_jnp(of_capsule, of_part, n_links: int, g_capsule, guard_capsule, tri
 
 
 def hull_stage_lanes(model, tr, a, b, need):
-    """Steps 2-5 on the lanes ``need`` (n,) of a tree step of n lanes (``tr`` trajectory, ``a, b``
+    """Steps 2-5 on the lanes ``need`` (n,) of a hull step of n lanes (``tr`` trajectory, ``a, b``
     rebased ends; the sizes are :func:`hull_sizes` of n). ``model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin,
     of_capsule, of_part, n_links, slack)``, ``slack`` :func:`~larc_jax.leaf.rounds.early_stop_slack`.
     Returns the lanes' hull-stage records (n,) (:class:`~larc_jax.leaf.record.LeafRecord`, stage HULL
