@@ -138,7 +138,7 @@ def _machine() -> dict:
 
 def _measure(robot, capsules, trajs, scenes, enclosure: str, args) -> dict:
     """The three schedulers on the whole set and one trajectory per call (the device tree's steps,
-    its one-step call and its time per further step beside), and the agreement."""
+    its call on the root alone and its time per further step beside), and the agreement."""
     from larc_jax.engine.tree import run_tree
 
     out = {"whole_set": {}}

@@ -72,8 +72,8 @@ def test_cascade_tree_on_posed_shapes_with_self_test_and_small_buffers(model, ne
     tree = run_tree(batch, len(trajs), DEPTH, **SMALL)
     _compare(batch, names, len(trajs), tree, ulps=8, max_depth=DEPTH, hull_m=1e-13)
     assert tree.calls > 1 and (tree.record.stage == 2).sum() > 20
-    # Hull steps of 3 (the queue fills in most first-stage steps, and calls stop holding some):
-    # the same leaves and decisions.
+    # Hull steps of 3, with calls that stop holding lanes on the hull queue (asserted below): the
+    # same leaves and decisions.
     held = []
 
     def call(program, args, on_compile):  # what each call leaves on the hull queue

@@ -83,16 +83,17 @@ HULL_STEP = 16
 and whose screen leaves the hulls a chance wait on the queue until this many have gathered (or
 the stack is empty), so that the hull stage's fixed work per run (its kinematics, its three
 rounds' loops) is shared by a full step rather than paid by the one or two lanes of each narrow
-step. Measured on Stage B against the hull stage run inside every step (README, "The depth loop
-on the device"): 16 gave one trajectory per call its best time and the whole set 0.95 of it, 32
-the whole set 0.89 of it."""
+step. Measured on Stage B against the hull stage run inside every step, in one process (README,
+"The depth loop on the device"): one trajectory per call, 16 took 0.86-0.89 of the old time, as
+fast as 8 and faster than 32; the whole set 0.95 of it with 16, 0.89 with 32."""
 HULL_WIDE_FROM = 16
 """The batch class (:func:`~larc_jax.engine.buckets.size_class`) from which a hull step takes
 ``2 * HULL_STEP`` intervals (its wide steps fill the queue fast); one compiled program per batch
 class either way."""
 STACK_SLACK = 2
-"""The stack holds ``size_class(seeds) + STACK_SLACK * wide * (DEFAULT_MAX_DEPTH + 1)`` intervals: a
-step grows it by at most its width, and the loop stops before a step could overflow it (depth
+"""The stack holds ``size_class(seeds) + STACK_SLACK * grow * (DEFAULT_MAX_DEPTH + 1)`` intervals,
+``grow = max(wide, 2 * hull)``: a first-stage step grows it by at most its width, a hull step by
+twice its width, and the loop stops before a step could overflow it (depth
 first, the stack holds about one step's width per level). Sized by the default depth, not the
 run's, so the depth is not a compiled shape; a deeper tree that fills it continues in a further
 call."""
@@ -251,7 +252,7 @@ def _padded(stage, lanes: int, wide: int):
     """``stage`` on the first ``lanes`` of a step's ``wide`` lanes (the rest are never valid there),
     its outputs padded back to ``wide``."""
 
-    def run(args, broad, *lane_arrays):  # noqa: D401
+    def run(args, broad, *lane_arrays):
         cut = jax.tree.map(lambda x: x[:lanes], lane_arrays)
         out = stage(args, broad, *cut)
         return jax.tree.map(lambda x: jnp.concatenate([x, jnp.zeros((wide - lanes,), x.dtype)]), out)

@@ -36,6 +36,7 @@ from .kernels import batched_interval_pairs, hull_early, hull_first_axis, hull_p
 
 __all__ = ["hull_sizes", "compact", "chunked", "link_min", "combine_jnp", "hull_stage_lanes"]
 
+
 def hull_sizes(lanes: int) -> tuple[int, int, int, int]:
     """``(H, M0, M1, M2)`` for a hull step of ``lanes`` lanes: the hull stage's slots (one per lane),
     and the triples each round searches at once (first axis, middle round, full search). Sized from
