@@ -147,8 +147,8 @@ def test_chunked_loop_visits_every_entry_once():
 
 
 def test_hull_sizes_take_a_hull_step_at_once():
-    """The slots and round widths of a hull step: one slot per lane (the slots' loop runs once),
-    positive, the later rounds no wider than the first, the first round twice the slots."""
+    """The lanes and round widths of a hull step: step 2 on every lane of the step, the rounds
+    positive, the later rounds no wider than the first, the first round twice the lanes."""
     for lanes in (1, 3, 16, 32):
         h, m0, m1, m2 = hull_sizes(lanes)
         assert h == lanes and 1 <= m2 <= m1 <= m0 == 2 * h

@@ -117,7 +117,7 @@ def supports(batch) -> bool:
 
 MAX_TRIPLES = 512
 """The most (hull part, item) pairs per interval the device tree takes: the hull stage keeps its
-triples dense, ``H x P x N`` per slot loop (:func:`~larc_jax.engine.tree_hull.hull_stage_lanes`),
+triples dense, ``H x P x N`` per hull step (:func:`~larc_jax.engine.tree_hull.hull_stage_lanes`),
 so this bounds those arrays; a larger scene is left to the host frontier."""
 
 
@@ -271,22 +271,25 @@ def _step(args, max_depth, broad: bool, widths, state):
     copy them each step)."""
     wide, narrow, hull = widths
     stack, top, queue, n_queued, leaves, n_leaves, frontier, steps = state
-    (s_traj, s_depth, s_index), (q_traj, q_depth, q_index, *q_self) = stack, queue
-    capacity, q_capacity = s_traj.shape[0], q_traj.shape[0]
-    hull_now = (n_queued >= hull) | ((top == 0) & (n_queued > 0))
+    capacity = stack[0].shape[0]
+    # Only the cascade has a hull queue (static: the capsule test carries none and never takes a hull step).
+    hull_now = ((n_queued >= hull) | ((top == 0) & (n_queued > 0))) if queue else jnp.bool_(False)
     use_wide = ~hull_now & (top >= wide // 2)
     n = jnp.where(hull_now, 0, jnp.minimum(top, jnp.where(use_wide, wide, narrow)))
     m = jnp.where(hull_now, jnp.minimum(n_queued, hull), 0)
     start, q_start = top - n, n_queued - m
     lane = jnp.arange(wide, dtype=top.dtype)
     valid = lane < n + m
-    rows, q_rows = jnp.where(valid, start + lane, 0), jnp.where(valid & hull_now, q_start + lane, 0)
+    rows = jnp.where(valid, start + lane, 0)
     # A padding lane evaluates trajectory 0's root (a real interval); nothing it computes is kept.
-    tr, dp, ix = (jnp.where(valid, jnp.where(hull_now, q[q_rows], s[rows]), 0)
-                  for q, s in ((q_traj, s_traj), (q_depth, s_depth), (q_index, s_index)))
-    queued = tuple(q[q_rows] for q in q_self)
+    tr, dp, ix = (jnp.where(valid, s[rows], 0) for s in stack)
+    queued = ()
+    if queue:
+        q_rows = jnp.where(valid & hull_now, q_start + lane, 0)
+        tr, dp, ix = (jnp.where(hull_now & valid, q[q_rows], x) for q, x in zip(queue, (tr, dp, ix)))
+        queued = tuple(q[q_rows] for q in queue[3:])
     branches = [_padded(_first_stage, narrow, wide), _first_stage]
-    if args[-1] is not None:
+    if queue:
         branches.append(_padded(_hull_stage, hull, wide))
     branch = jnp.where(hull_now, 2, jnp.where(use_wide, 1, 0))
     t0, t1, record, to_hull, self_cols = jax.lax.switch(
@@ -302,9 +305,10 @@ def _step(args, max_depth, broad: bool, widths, state):
     first = start + 2 * (jnp.cumsum(open_) - 1)
     left, right = jnp.where(open_, first, capacity), jnp.where(open_, first + 1, capacity)
     stack = tuple(s.at[left].set(x, mode="drop").at[right].set(y, mode="drop")
-                  for s, x, y in ((s_traj, tr, tr), (s_depth, dp + 1, dp + 1), (s_index, 2 * ix, 2 * ix + 1)))
-    to = jnp.where(to_hull, q_start + jnp.cumsum(to_hull) - 1, q_capacity)
-    queue = tuple(q.at[to].set(x.astype(q.dtype), mode="drop") for q, x in zip(queue, (tr, dp, ix, *self_cols)))
+                  for s, x, y in zip(stack, (tr, dp + 1, 2 * ix), (tr, dp + 1, 2 * ix + 1)))
+    if queue:
+        to = jnp.where(to_hull, q_start + jnp.cumsum(to_hull) - 1, queue[0].shape[0])
+        queue = tuple(q.at[to].set(x.astype(q.dtype), mode="drop") for q, x in zip(queue, (tr, dp, ix, *self_cols)))
     # An interval counts once, where it finishes or opens: one the queue holds when a call stops
     # is evaluated again in the next call (run_tree).
     frontier = frontier.at[jnp.where(done, tr, frontier.shape[0]), dp].add(1, mode="drop")
@@ -320,9 +324,9 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
     stack and the hull queue are empty or the next step could overflow the stack or the leaf
     buffers. Returns ``(stack, top, queue, n_queued, leaves, n_leaves, frontier, steps)``: what is
     left (``queue``: the hull queue's trajectory, depth and index columns, then the saved self-test
-    columns, the first ``n_queued`` in use), the leaf columns (:data:`_LEAF_DTYPES`; the first
-    ``n_leaves`` in use), ``frontier`` with this call's evaluations added, and the steps run
-    (first-stage steps, hull steps).
+    columns, the first ``n_queued`` in use; none with the capsule test), the leaf columns
+    (:data:`_LEAF_DTYPES`; the first ``n_leaves`` in use), ``frontier`` with this call's evaluations
+    added, and the steps run (first-stage steps, hull steps).
     ``self_check``: as :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self
     test). ``cascade``: ``(hulls, Links.of_capsule, Links.part_table, Links.of_part,
     early_stop_slack)`` for the cascade (the hull stage after the capsule stage), or None (the
@@ -333,7 +337,7 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
     leaves = tuple(jnp.zeros(leaf_capacity, d) for d in _LEAF_DTYPES)
     # A first-stage step adds at most `wide` lanes to a queue holding fewer than `hull`.
     q_dtypes = (*(s.dtype for s in stack), *(() if self_check is None else _RECORD_DTYPES))
-    queue = tuple(jnp.zeros(wide + hull, d) for d in q_dtypes)
+    queue = () if cascade is None else tuple(jnp.zeros(wide + hull, d) for d in q_dtypes)
     grow = max(wide, 2 * hull)
 
     def room(state):
@@ -398,7 +402,9 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
         calls, steps = calls + 1, steps + np.asarray(out[7])
         found.append([x[: int(n_leaves)] for x in leaves])
         # What a stopped call left: its stack, and the hull queue's intervals (evaluated again).
-        pending = [np.concatenate([p, s[: int(top)], q[: int(n_queued)]]) for p, s, q in zip(pending, stack, queue)]
+        left = [s[: int(top)] for s in stack] if not queue else [
+            np.concatenate([s[: int(top)], q[: int(n_queued)]]) for s, q in zip(stack, queue)]
+        pending = [np.concatenate([p, x]) for p, x in zip(pending, left)]
     traj, depth, index, t0, t1, *columns = (np.concatenate(c) for c in zip(*found))
     order = np.lexsort((t0, traj))
     g, guard, cap, box, other, stage = (x[order] for x in columns)

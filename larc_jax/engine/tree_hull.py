@@ -2,25 +2,29 @@
 (:mod:`larc_jax.leaf.cascade`) on the lanes of one hull step, with fixed shapes.
 
 The host cascade (:meth:`Batch._hull_stage <larc_jax.engine.batch.Batch>`) selects intervals,
-pairs and triples with NumPy between kernel calls; here every selection is a stream compaction
-(a prefix sum and a scatter) into a buffer whose size is fixed when the program compiles:
+pairs and triples with NumPy between kernel calls; here the shapes are fixed when the program
+compiles, and every selection of triples is a stream compaction (a prefix sum and a scatter) into
+a buffer of fixed size:
 
 * the lanes the capsule stage fails whose screen passes (the host's ``open_`` after
-  ``_hopeless``; the tree's hull queue gathers them) are compacted into ``H`` *slots*, one per lane
-  of the step (:func:`hull_sizes`); step 2 runs on the slots
-  with every capsule-box pair exact (:func:`~larc_jax.leaf.cascade.interval_pairs`: what the
-  host's bounded call gives wherever its result could matter, :func:`~larc_jax.leaf.cascade.exact_enough`);
+  ``_hopeless``) are gathered by the tree's hull queue into the lanes of a hull step, ``H`` of
+  them (:func:`hull_sizes`); step 2 runs on every lane of the step (a lane the step does not
+  fill is padding: its results are not read) with every capsule-box pair exact
+  (:func:`~larc_jax.leaf.cascade.interval_pairs`: what the host's bounded call gives wherever its
+  result could matter, :func:`~larc_jax.leaf.cascade.exact_enough`; the bounded call with the
+  exact one on the lanes it leaves, tried here in two ways, made a Stage B trajectory 5-8 % slower
+  one per call, measured while developing);
 * step 3 (:func:`~larc_jax.leaf.cascade.select_pairs`) marks the tried (link, item) pairs and
-  their (part, item) triples, dense ``(H, P, N)`` in the host's order (slot, part, item);
+  their (part, item) triples, dense ``(H, P, N)`` in the host's order (lane, part, item);
 * step 4 runs the three rounds of :func:`~larc_jax.leaf.rounds.hull_rounds` with the same rule:
   the first axis on every triple, the middle round (with its upper bound) on those it leaves at
   or below their guard, the full search on those the middle round leaves undecided; each round
   compacts its triples ``M0``, ``M1`` or ``M2`` at a time (:func:`chunked`);
 * step 5 is :func:`combine_jnp`, :func:`~larc_jax.leaf.cascade.combine` on the dense arrays.
 
-Every compaction is a ``lax.while_loop`` that runs until nothing is left (the slots once, each
-round its buffer's width at a time): a step needing more than a buffer holds runs the loop again,
-so nothing overflows or is deferred. The sizes only trade padding (work in every iteration)
+Every compaction is a ``lax.while_loop`` that runs until nothing is left (each round its buffer's
+width at a time): a step needing more than a buffer holds runs the loop again, so nothing
+overflows or is deferred. The sizes only trade padding (work in every iteration)
 against iterations.
 
 The decisions are those of the host cascade: the same kernels (one program instead of several,
@@ -31,16 +35,16 @@ hull-stage record may differ from the host's in its last bits for the same reaso
 from __future__ import annotations
 
 from ..lazy_jax import jax, jnp
-from ..leaf.record import LeafRecord, Stage, box_record
+from ..leaf.record import Stage, box_record
 from .kernels import batched_interval_pairs, hull_early, hull_first_axis, hull_pairs
 
 __all__ = ["hull_sizes", "compact", "chunked", "link_min", "combine_jnp", "hull_stage_lanes"]
 
 
 def hull_sizes(lanes: int) -> tuple[int, int, int, int]:
-    """``(H, M0, M1, M2)`` for a hull step of ``lanes`` lanes: the hull stage's slots (one per lane),
-    and the triples each round searches at once (first axis, middle round, full search). Sized from
-    the Stage B set (LARC, the cascade): the hull stage runs with 1.6 triples an interval; the
+    """``(H, M0, M1, M2)`` for a hull step of ``lanes`` lanes: the lanes step 2 runs on (all of
+    them), and the triples each round searches at once (first axis, middle round, full search).
+    Sized from the Stage B set (LARC, the cascade): the hull stage runs with 1.6 triples an interval; the
     middle round takes about a third of them, the full search 2 %. A step needing more runs its
     loops again (module docstring); padding costs work in every run, so each size is about what a
     step needs."""
@@ -121,52 +125,42 @@ def combine_jnp(of_capsule, of_part, n_links: int, g_capsule, guard_capsule, tri
 
 def hull_stage_lanes(model, tr, a, b, need):
     """Steps 2-5 on the lanes ``need`` (n,) of a hull step of n lanes (``tr`` trajectory, ``a, b``
-    rebased ends; the sizes are :func:`hull_sizes` of n). ``model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin,
-    of_capsule, of_part, n_links, slack)``, ``slack`` :func:`~larc_jax.leaf.rounds.early_stop_slack`.
-    Returns the lanes' hull-stage records (n,) (:class:`~larc_jax.leaf.record.LeafRecord`, stage HULL
-    or NONE; read only on ``need``)."""
+    rebased ends; the sizes are :func:`hull_sizes` of n): step 2 runs on every lane, and a lane
+    outside ``need`` is padding whose results are not read.
+    ``model = (robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin, of_capsule,
+    of_part, n_links, slack)``, ``slack`` :func:`~larc_jax.leaf.rounds.early_stop_slack`. Returns the
+    lanes' hull-stage records (n,) (:class:`~larc_jax.leaf.record.LeafRecord`, stage HULL; read
+    only on ``need``)."""
     robot, capsules, hulls, splines, obstacles, bounds, scene_of, margin, of_capsule, of_part, n_links, slack = model
-    n = tr.shape[0]
-    H, M0, M1, M2 = hull_sizes(n)
+    H, M0, M1, M2 = hull_sizes(tr.shape[0])
+    scene = scene_of[tr]
+    g_cap, T_part, motion_b, g_up = batched_interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, tr,
+                                                           (scene,), a, b, margin)
+    G_c, G_p = bounds.guard_m[tr], bounds.hull_guard_m[tr]  # (H, C), (H, P)
+    P, N = g_up.shape[1], g_up.shape[2]
+    # Step 3: a pair is tried when its capsules fail and every one of its parts could pass.
+    cap = link_min(g_cap - G_c[:, :, None], of_capsule, n_links)
+    upper = link_min(g_up - G_p[:, :, None], of_part, n_links)
+    tried = ~(cap > 0) & (upper > 0) & ~jnp.isnan(cap) & need[:, None, None]
+    want = tried[:, of_part, :].reshape(-1)  # (H * P * N): every part of every tried link
+    guard = jnp.broadcast_to(G_p[:, :, None], (H, P, N)).reshape(-1)
 
-    def slots(state):
-        """Steps 2-5 on the next ``H`` lanes still to do."""
-        remaining, records = state
-        lane_of, used, kept = compact(remaining, H)
-        ts, scene = tr[lane_of], scene_of[tr[lane_of]]
-        g_cap, T_part, motion_b, g_up = batched_interval_pairs(robot, capsules, hulls, splines, obstacles, bounds, ts,
-                                                               (scene,), a[lane_of], b[lane_of], margin)
-        G_c, G_p = bounds.guard_m[ts], bounds.hull_guard_m[ts]  # (H, C), (H, P)
-        P, N = g_up.shape[1], g_up.shape[2]
-        # Step 3: a pair is tried when its capsules fail and every one of its parts could pass.
-        cap = link_min(g_cap - G_c[:, :, None], of_capsule, n_links)
-        upper = link_min(g_up - G_p[:, :, None], of_part, n_links)
-        tried = ~(cap > 0) & (upper > 0) & ~jnp.isnan(cap) & used[:, None, None]
-        want = tried[:, of_part, :].reshape(-1)  # (H * P * N): every part of every tried link
-        guard = jnp.broadcast_to(G_p[:, :, None], (H, P, N)).reshape(-1)
+    def search(kernel):  # one round's kernel on the triples src (flat (lane, part, item) indices)
+        def run(src):
+            i, p, k = src // (P * N), (src // N) % P, src % N
+            return kernel(hulls, p, T_part[i, p], obstacles.take((scene[i], k)), motion_b[i, p], margin)
+        return run
 
-        def search(kernel):  # one round's kernel on the triples src (flat (slot, part, item) indices)
-            def run(src):
-                i, p, k = src // (P * N), (src // N) % P, src % N
-                return kernel(hulls, p, T_part[i, p], obstacles.take((scene[i], k)), motion_b[i, p], margin)
-            return run
+    def middle(src):
+        lower, up = search(hull_early)(src).T
+        return lower, (lower > guard[src]) | (up <= guard[src] - slack)
 
-        def middle(src):
-            lower, up = search(hull_early)(src).T
-            return lower, (lower > guard[src]) | (up <= guard[src] - slack)
-
-        # Step 4 in the rounds of larc_jax.leaf.rounds.hull_rounds.
-        g = jnp.full(want.shape, jnp.inf, g_up.dtype)
-        (g,) = chunked(want, M0, lambda src: (search(hull_first_axis)(src),), (g,))
-        redo = want & ~(g > guard)
-        g, stop = chunked(redo, M1, middle, (g, jnp.zeros(want.shape, bool)))
-        (g,) = chunked(redo & ~stop, M2, lambda src: (search(hull_pairs)(src),), (g,))
-        g_rec, guard_rec, capsule, item = combine_jnp(of_capsule, of_part, n_links, g_cap, G_c, tried,
-                                                      g.reshape(H, P, N), jnp.where(want, guard, 0.0).reshape(H, P, N))
-        record = box_record(g_rec, guard_rec, capsule.astype(jnp.int64), item.astype(jnp.int64), Stage.HULL, xp=jnp)
-        to = jnp.where(used, lane_of, n)
-        return remaining & ~kept, jax.tree.map(lambda buf, x: buf.at[to].set(x, mode="drop"), records, record)
-
-    empty = LeafRecord(jnp.zeros(n), jnp.zeros(n), jnp.zeros(n, jnp.int64), jnp.zeros(n, jnp.int64),
-                       jnp.zeros(n, jnp.int64), jnp.zeros(n, jnp.int8))
-    return jax.lax.while_loop(lambda state: state[0].any(), slots, (need, empty))[1]
+    # Step 4 in the rounds of larc_jax.leaf.rounds.hull_rounds.
+    g = jnp.full(want.shape, jnp.inf, g_up.dtype)
+    (g,) = chunked(want, M0, lambda src: (search(hull_first_axis)(src),), (g,))
+    redo = want & ~(g > guard)
+    g, stop = chunked(redo, M1, middle, (g, jnp.zeros(want.shape, bool)))
+    (g,) = chunked(redo & ~stop, M2, lambda src: (search(hull_pairs)(src),), (g,))
+    g_rec, guard_rec, capsule, item = combine_jnp(of_capsule, of_part, n_links, g_cap, G_c, tried,
+                                                  g.reshape(H, P, N), jnp.where(want, guard, 0.0).reshape(H, P, N))
+    return box_record(g_rec, guard_rec, capsule.astype(jnp.int64), item.astype(jnp.int64), Stage.HULL, xp=jnp)
