@@ -10,7 +10,8 @@ import pytest
 
 from larc_jax.engine.batch import prepare
 from larc_jax.engine.certify import _Names, _larc_batched, run_spec  # noqa: PLC2701 - the host frontier is the reference
-from larc_jax.engine.tree import NARROW_STEP, WIDE_STEP, dyadic_ends_jnp, rebase_ends_jnp, run_tree, supports
+from larc_jax.engine.tree import (NARROW_STEP, SPECULATION_LEVELS, WIDE_STEP, dyadic_ends_jnp, rebase_ends_jnp,
+                                  run_tree, supports)
 from larc_jax.leaf.interval import dyadic_ends, rebase_ends, trajectory_roundings
 from larc_jax.leaf.self_collision import curve_ranges, load_separation, self_pairs
 from larc_jax.model.scene import Scene
@@ -80,19 +81,45 @@ def test_tree_matches_host_frontier_on_random_set(robot, capsules, random_set):
     assert tree.steps == _steps(len(trajs), tree) and tree.hull_steps == 0  # no hull queue without the cascade
 
 
-def _steps(n_traj: int, tree, wide: int = WIDE_STEP, narrow: int = NARROW_STEP) -> int:
+def _steps(n_traj: int, tree, wide: int = WIDE_STEP, narrow: int = NARROW_STEP,
+           levels: int = SPECULATION_LEVELS) -> int:
     """The steps one call of the tree takes, replayed on the host from its leaves (an evaluated
     interval that is not a leaf was bisected): each step pops the top ``wide`` intervals of the
-    stack (``narrow`` while it holds fewer than ``wide // 2``) and pushes both children of each
-    open one in their place, in order."""
+    stack (``narrow`` while it holds fewer than ``wide // 2``); a step that pops them all and has
+    room for them and their descendants ``L`` levels down (``L <= levels``, the most
+    that fit) settles those levels too; the open intervals of the last level it settled push
+    both children, in order."""
     leaves = set(zip(tree.traj.tolist(), tree.depth.tolist(), tree.index.tolist()))
     stack, steps = [(k, 0, 0) for k in range(n_traj)], 0
     while stack:
-        n = min(len(stack), wide if len(stack) >= wide // 2 else narrow)
+        width = wide if len(stack) >= wide // 2 else narrow
+        n = min(len(stack), width)
+        ahead = max(lv for lv in range(levels + 1) if lv == 0 or n * (2 ** (lv + 1) - 1) <= width)
         popped, stack = stack[len(stack) - n:], stack[: len(stack) - n]
-        stack += [(k, d + 1, 2 * i + c) for k, d, i in popped if (k, d, i) not in leaves for c in (0, 1)]
+        for _ in range(ahead + 1):  # one level settled per round
+            popped = [(k, d + 1, 2 * i + c) for k, d, i in popped if (k, d, i) not in leaves for c in (0, 1)]
+        stack += popped
         steps += 1
     return steps
+
+
+def test_tree_evaluates_ahead_and_again(robot, capsules, random_set, monkeypatch):
+    """Two trajectories start from two intervals: narrow steps evaluate them with their descendants
+    (:func:`~larc_jax.engine.tree.speculation_levels`) and keep only what the level-by-level
+    frontier evaluates, in fewer steps than without. With a broad phase of one exact pair, lanes
+    evaluated ahead whose pick it did not prove go back on the stack (``again``) and are evaluated
+    again as a step's own: the host frontier's leaves either way."""
+    import larc_jax.engine.tree as tree_module
+
+    trajs, scenes = random_set
+    batch, names = _batch(robot, capsules, trajs[:2], scenes[:2])
+    tree = run_tree(batch, 2, MAX_DEPTH)
+    _compare(batch, names, 2, tree, ulps=8)
+    assert tree.steps == _steps(2, tree) < _steps(2, tree, levels=0) and tree.again == 0
+    monkeypatch.setattr(tree_module, "BROAD_PHASE_K", 1)
+    proven = run_tree(batch, 2, MAX_DEPTH, leaf_capacity=1000)  # a shape of its own: traced with k = 1
+    assert proven.again > 0
+    _compare(batch, names, 2, proven, ulps=8)
 
 
 def test_tree_continues_when_buffers_fill(robot, capsules, random_set):

@@ -2,8 +2,8 @@
 
 The host-driven frontier (``larc`` in :mod:`larc_jax.engine.certify`) makes a kernel call per
 depth and moves every result to the host between calls. Here the whole tree (the capsule test or
-the cascade, and the self test where the run checks self-collision) runs inside one
-``jax.lax.while_loop``:
+the cascade, and the self test where the run checks self-collision) runs inside one jitted
+program of ``jax.lax.while_loop``s:
 
 * a work stack of ``(trajectory, depth, index)`` intervals, ``capacity`` long, seeded with the
   roots; a *first-stage* step pops the top intervals (at most a step's width) and evaluates their
@@ -20,10 +20,16 @@ the cascade, and the self test where the run checks self-collision) runs inside 
 * either step writes its finished lanes (passed, or at ``max_depth``) into preallocated leaf
   buffers at offsets given by a prefix sum, and pushes both children of every open one by a
   second prefix sum and scatter (stream compaction);
-* two first-stage widths, both compiled into the program: a wide step while the stack holds at
-  least half of it, a narrow one below (one trajectory certified alone starts from one interval; a
-  wide step there would evaluate padding); only the evaluation is under the branch, never the
+* two phases, each a loop of its own over the same state, both compiled into the program: wide
+  steps while the stack holds at least half of one (and the queue less than a hull step), narrow
+  steps (first-stage or hull) otherwise (one trajectory certified alone starts from one interval;
+  a wide step there would evaluate padding). A step's prefix sums and scatters run on its phase's
+  lanes (a narrow step's on 16 or 32, not 256); only the evaluation is under a branch, never the
   buffers;
+* a narrow step whose stack is short fills its lanes with its intervals' descendants, up to
+  :data:`SPECULATION_LEVELS` levels down (:func:`speculation_levels`), and keeps a descendant's
+  result only where every interval above it opened: one trajectory's first four levels take one
+  step instead of four;
 * the depth is traced and the buffers are sized by the batch's trajectory count (its power-of-two
   class), never by its depth: one compiled program per batch class, whatever ``max_depth``;
 * the loop stops when the stack and the queue are empty, or when the next step could overflow the
@@ -32,8 +38,10 @@ the cascade, and the self test where the run checks self-collision) runs inside 
   finishes or opens, so it counts once) (:func:`run_tree`). A stopped call never changes a result:
   each interval's test depends on that interval alone.
 
-Why the order does not matter: an interval is evaluated exactly when its parent was evaluated and
-failed (or it is a root), whatever order the stack and the queue take them in, so the set of evaluated intervals,
+Why the order does not matter: an interval counts as evaluated exactly when its parent was
+evaluated and failed (or it is a root), whatever order the stack and the queue take them in (a
+descendant evaluated ahead is kept only then, and one whose broad phase did not prove its pick is
+evaluated again later, :func:`_first_stage`), so the set of evaluated intervals,
 the leaves and their decisions equal those of the level-by-level frontier; :func:`run_tree`
 returns the leaves sorted as the certifiers' leaf tables are (by trajectory, then time), and the
 per-depth evaluation counts. A record's clearance may differ from the host frontier's in its last
@@ -67,7 +75,8 @@ from .kernels import (batched_intervals, evaluate_intervals_screened, evaluate_i
 from .tree_hull import hull_stage_lanes
 
 __all__ = ["supports", "run_tree", "tree_program", "TreeLeaves", "dyadic_ends_jnp", "rebase_ends_jnp", "WIDE_STEP",
-           "NARROW_STEP", "HULL_STEP", "HULL_WIDE_FROM", "STACK_SLACK", "LEAF_CAPACITY", "MAX_TRIPLES"]
+           "NARROW_STEP", "SPECULATION_LEVELS", "speculation_levels", "HULL_STEP", "HULL_WIDE_FROM", "STACK_SLACK",
+           "LEAF_CAPACITY", "MAX_TRIPLES"]
 
 WIDE_STEP = 256
 """Intervals a wide step evaluates (the stack holds at least half of it)."""
@@ -102,6 +111,9 @@ LEAF_CAPACITY = 1 << 16
 returns its whole buffers, so a small batch gets smaller ones: ``size_class(trajectories) <<
 DEFAULT_MAX_DEPTH`` leaves (all a trajectory can have at the default depth), plus a step's width
 for the loop's room test. A deeper tree that fills them continues in a further call."""
+
+SPECULATION_LEVELS = 3
+"""The most levels below its intervals a first-stage step evaluates ahead (:func:`speculation_levels`)."""
 
 
 def supports(batch) -> bool:
@@ -172,6 +184,9 @@ class TreeLeaves:
     call's time grows with when the steps are narrow (``experiments.bench_tree``)."""
     hull_steps: int = 0
     """Of :attr:`steps`, the hull steps (the cascade's hull stage on the hull queue, :func:`_step`)."""
+    again: int = 0
+    """Intervals evaluated ahead (:func:`speculation_levels`) and needed, whose broad phase did not
+    prove its pick: pushed back and evaluated again as a step's own (:func:`_first_stage`)."""
 
 
 _LEAF_DTYPES = (np.int32, np.int32, np.int64, np.float64, np.float64, np.float64, np.float64, np.int32, np.int32,
@@ -188,12 +203,16 @@ def _ends(args, tr, dp, ix):
     return (t0, t1, *rebase_ends_jnp(t0, t1, bounds.offset_s[tr]))
 
 
-def _first_stage(args, broad: bool, tr, dp, ix, valid, queued):
+def _first_stage(args, broad: bool, tr, dp, ix, roots, queued):
     """The capsule stage (with the cascade, the screened one) and the self test on the lanes ``(tr,
-    dp, ix)`` (``valid`` those in use), as :meth:`Batch._stages <larc_jax.engine.batch.Batch>`
-    takes them: ``(t0, t1, record, to_hull, self columns)``, ``to_hull`` the lanes the hull stage
-    decides (the capsules fail a box and the screen leaves the hulls a chance) and the self test's
-    record columns, which go with them to the hull queue (``queued`` is not read here)."""
+    dp, ix)``, as :meth:`Batch._stages <larc_jax.engine.batch.Batch>` takes them: ``(t0, t1,
+    record, to_hull, self columns, exact)``, ``to_hull`` the lanes the hull stage decides (the
+    capsules fail a box and the screen leaves the hulls a chance), the self test's record columns,
+    which go with them to the hull queue (``queued`` is not read here), and ``exact``, whether a
+    lane's capsule stage is the all-pairs one: the broad phase proved its pick, or every pair was
+    computed again, as on the ``roots`` lanes (the step's own intervals) wherever it did not; a
+    lane evaluated ahead (:func:`speculation_levels`) whose pick was not proven is evaluated
+    again later (:func:`_step`), so that a speculative lane never costs a step the all-pairs kernel."""
     robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade = args
     t0, t1, a, b = _ends(args, tr, dp, ix)
     hulls, of_capsule, part_table = (None,) * 3 if cascade is None else cascade[:3]
@@ -213,14 +232,15 @@ def _first_stage(args, broad: bool, tr, dp, ix, valid, queued):
 
     if broad:  # the broad phase, then every pair where it could not prove its pick
         picked, exact = step1(BROAD_PHASE_K)
-        redo = ~exact.astype(bool) & valid
+        redo = ~exact.astype(bool) & roots
 
         def all_pairs(picked):
             return tuple(jnp.where(redo, x, y) for x, y in zip(step1(None)[0], picked))
 
         out = jax.lax.cond(redo.any(), all_pairs, lambda picked: picked, picked)
+        exact = exact.astype(bool) | redo
     else:
-        out = step1(None)[0]
+        out, exact = step1(None)[0], jnp.ones(tr.shape, bool)
     g, guard, cap, box = out[:4]
     record = box_record(g, guard, cap.astype(jnp.int64), box.astype(jnp.int64), Stage.CAPSULE, xp=jnp)
     self_test = None
@@ -229,13 +249,13 @@ def _first_stage(args, broad: bool, tr, dp, ix, valid, queued):
         self_test = self_record(gs, gds, c1.astype(jnp.int64), c2.astype(jnp.int64), xp=jnp)
     to_hull = jnp.zeros(tr.shape, bool)
     if cascade is not None:  # the hull stage where the capsules fail and the screen leaves it a chance
-        to_hull = valid & needs_hull(record, self_test, xp=jnp) & (out[4] > 0)
-    return t0, t1, compose(record, self_test, xp=jnp), to_hull, () if self_test is None else tuple(self_test)
+        to_hull = needs_hull(record, self_test, xp=jnp) & (out[4] > 0)
+    return t0, t1, compose(record, self_test, xp=jnp), to_hull, () if self_test is None else tuple(self_test), exact
 
 
 def _hull_stage(args, broad: bool, tr, dp, ix, valid, queued):
     """The hull stage (:mod:`larc_jax.engine.tree_hull`) on the lanes ``(tr, dp, ix)`` taken from the
-    hull queue (``valid`` those in use; ``queued``: their self test's record columns, saved by
+    hull queue (``valid`` those in use, every one a root; ``queued``: their self test's record columns, saved by
     :func:`_first_stage`), composed with the self test as :func:`_first_stage` composes the capsule
     stage's. Returns what :func:`_first_stage` returns (no lane goes to the queue again)."""
     robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade = args
@@ -245,12 +265,14 @@ def _hull_stage(args, broad: bool, tr, dp, ix, valid, queued):
              part_table.shape[0], slack)
     record = hull_stage_lanes(model, tr, a, b, valid)
     self_test = LeafRecord(*queued) if queued else None
-    return t0, t1, compose(record, self_test, xp=jnp), jnp.zeros(tr.shape, bool), queued
+    return t0, t1, compose(record, self_test, xp=jnp), jnp.zeros(tr.shape, bool), queued, jnp.ones(tr.shape, bool)
 
 
 def _padded(stage, lanes: int, wide: int):
     """``stage`` on the first ``lanes`` of a step's ``wide`` lanes (the rest are never valid there),
     its outputs padded back to ``wide``."""
+    if lanes == wide:
+        return stage
 
     def run(args, broad, *lane_arrays):
         cut = jax.tree.map(lambda x: x[:lanes], lane_arrays)
@@ -260,61 +282,104 @@ def _padded(stage, lanes: int, wide: int):
     return run
 
 
-def _step(args, max_depth, broad: bool, widths, state):
-    """One step. A *first-stage* step pops up to ``wide`` intervals off the stack (``narrow`` while it
-    holds fewer than ``wide // 2``) and evaluates their capsule stage and self test; a *hull* step,
-    taken whenever the hull queue holds ``hull`` intervals (or the stack is empty and it holds any),
-    pops up to ``hull`` of them and runs their hull stage. Either writes its finished lanes into the
-    leaf buffers and pushes both children of its open ones onto the stack; a first-stage step puts
-    the lanes the hull stage decides onto the hull queue instead. Only the evaluation is under the
+def speculation_levels(n, width):
+    """How many levels below each of its ``n`` intervals a first-stage step of ``width`` lanes
+    evaluates too: the most ``L <= SPECULATION_LEVELS`` with ``n * (2**(L + 1) - 1) <= width`` (0
+    when ``n`` is 0, a hull step). A short stack (one trajectory's first levels, the last intervals
+    of a batch) would leave most of a step's lanes padding; its intervals' descendants fill them,
+    and a descendant's result is kept only where every interval above it opened (:func:`_step`), so
+    the tree evaluates, decides and counts what it did without them, in fewer steps."""
+    return sum(((n > 0) & (n * ((2 << level) - 1) <= width)).astype(jnp.asarray(n).dtype)
+               for level in range(1, SPECULATION_LEVELS + 1))
+
+
+def _step(args, max_depth, broad: bool, widths, narrow_phase: bool, state):
+    """One step, on ``max(narrow, hull)`` lanes in the narrow phase and ``wide`` in the wide one
+    (:func:`tree_program`). A *first-stage* step pops up to its phase's width of intervals off the
+    stack and evaluates their capsule stage and self test (in the narrow phase, with their
+    descendants down :func:`speculation_levels`); a *hull* step (narrow phase only), taken whenever
+    the hull queue holds ``hull`` intervals (or the stack is empty and it holds any), pops up to
+    ``hull`` of them and runs their hull stage. Either writes its finished lanes into the leaf
+    buffers and pushes both children of its open ones onto the stack; a first-stage step puts the
+    lanes the hull stage decides onto the hull queue instead. Only the evaluation is under the
     branch: its operands are a step's lanes, not the buffers (a branch over the whole state would
     copy them each step)."""
     wide, narrow, hull = widths
     stack, top, queue, n_queued, leaves, n_leaves, frontier, steps = state
     capacity = stack[0].shape[0]
+    width, lanes = (narrow, max(narrow, hull)) if narrow_phase else (wide, wide)
     # Only the cascade has a hull queue (static: the capsule test carries none and never takes a hull step).
-    hull_now = ((n_queued >= hull) | ((top == 0) & (n_queued > 0))) if queue else jnp.bool_(False)
-    use_wide = ~hull_now & (top >= wide // 2)
-    n = jnp.where(hull_now, 0, jnp.minimum(top, jnp.where(use_wide, wide, narrow)))
+    hull_now = ((n_queued >= hull) | ((top == 0) & (n_queued > 0))) if queue and narrow_phase else jnp.bool_(False)
+    n = jnp.where(hull_now, 0, jnp.minimum(top, width))
     m = jnp.where(hull_now, jnp.minimum(n_queued, hull), 0)
     start, q_start = top - n, n_queued - m
-    lane = jnp.arange(wide, dtype=top.dtype)
-    valid = lane < n + m
-    rows = jnp.where(valid, start + lane, 0)
+    lane = jnp.arange(lanes, dtype=top.dtype)
+    if narrow_phase:
+        # Each of the step's `n_roots` intervals (popped, or taken from the queue) on `per` lanes: the
+        # interval, then its descendants `ahead` levels down, heap order (lane = root + n_roots * node).
+        ahead = speculation_levels(n, width)
+        n_roots, per = n + m, (1 << (ahead + 1)) - 1
+        valid = lane < n_roots * per
+        root, node = lane % jnp.maximum(n_roots, 1), jnp.where(valid, lane // jnp.maximum(n_roots, 1), 0)
+        level = (31 - jax.lax.clz(node + 1)).astype(top.dtype)  # floor(log2(node + 1))
+    else:  # at least wide // 2 intervals: none evaluated ahead
+        ahead, valid, root = 0, lane < n, lane
+        node = level = jnp.zeros_like(lane)
+    rows = jnp.where(valid, start + root, 0)
     # A padding lane evaluates trajectory 0's root (a real interval); nothing it computes is kept.
     tr, dp, ix = (jnp.where(valid, s[rows], 0) for s in stack)
     queued = ()
-    if queue:
-        q_rows = jnp.where(valid & hull_now, q_start + lane, 0)
+    if queue and narrow_phase:
+        q_rows = jnp.where(valid & hull_now, q_start + root, 0)
         tr, dp, ix = (jnp.where(hull_now & valid, q[q_rows], x) for q, x in zip(queue, (tr, dp, ix)))
         queued = tuple(q[q_rows] for q in queue[3:])
-    branches = [_padded(_first_stage, narrow, wide), _first_stage]
-    if queue:
-        branches.append(_padded(_hull_stage, hull, wide))
-    branch = jnp.where(hull_now, 2, jnp.where(use_wide, 1, 0))
-    t0, t1, record, to_hull, self_cols = jax.lax.switch(
-        branch, [functools.partial(stage, args, broad) for stage in branches], tr, dp, ix, valid, queued)
+    if narrow_phase:
+        dp, ix = dp + level, (ix << level.astype(ix.dtype)) + (node + 1 - (1 << level)).astype(ix.dtype)
+    operands = (tr, dp, ix, valid & (node == 0), queued)
+    if not narrow_phase:
+        out = _first_stage(args, broad, *operands)
+    elif queue:
+        branches = [functools.partial(_padded(stage, w, lanes), args, broad)
+                    for stage, w in ((_first_stage, narrow), (_hull_stage, hull))]
+        out = jax.lax.switch(hull_now.astype(jnp.int32), branches, *operands)
+    else:
+        out = _padded(_first_stage, narrow, lanes)(args, broad, *operands)
+    t0, t1, record, to_hull, self_cols, exact = out
     passed = record.stage > 0  # g > guard for every stage that ran; NaN never passes (larc_jax.leaf.record)
-    done = valid & ~to_hull
+    # A lane counts only where its parent (the lane `(node - 1) // 2` levels up) was evaluated and
+    # opened: what the level-by-level frontier evaluates. One more level is settled per round. A
+    # lane evaluated ahead whose broad phase did not prove its pick goes back on the stack instead
+    # (`again`, evaluated as a step's own interval later; its descendants here are not kept).
+    active = valid & (node == 0)
+    if narrow_phase:
+        parent = jnp.where(node > 0, root + n_roots * ((node - 1) // 2), 0)
+        for _ in range(SPECULATION_LEVELS):
+            open_ = active & exact & ~to_hull & ~passed & (dp < max_depth)
+            active = valid & ((node == 0) | ((node > 0) & open_[parent]))
+    again = active & ~exact
+    to_hull = to_hull & active & exact
+    done = active & exact & ~to_hull
     final = done & (passed | (dp == max_depth))
     open_ = done & ~final
+    push = open_ & (level == ahead)  # the step evaluated the children of the others
     # Stream compaction by prefix sums; a write to an index past the end is dropped.
     at = jnp.where(final, n_leaves + jnp.cumsum(final) - 1, leaves[0].shape[0])
     leaves = tuple(buf.at[at].set(x.astype(buf.dtype), mode="drop")
                    for buf, x in zip(leaves, (tr, dp, ix, t0, t1, *record)))
-    first = start + 2 * (jnp.cumsum(open_) - 1)
-    left, right = jnp.where(open_, first, capacity), jnp.where(open_, first + 1, capacity)
-    stack = tuple(s.at[left].set(x, mode="drop").at[right].set(y, mode="drop")
-                  for s, x, y in zip(stack, (tr, dp + 1, 2 * ix), (tr, dp + 1, 2 * ix + 1)))
+    count = 2 * push + again  # stack entries a lane pushes: both children, or itself
+    first = start + jnp.cumsum(count) - count
+    left, right = jnp.where(count > 0, first, capacity), jnp.where(push, first + 1, capacity)
+    stack = tuple(s.at[left].set(jnp.where(push, x, z), mode="drop").at[right].set(y, mode="drop")
+                  for s, x, y, z in zip(stack, (tr, dp + 1, 2 * ix), (tr, dp + 1, 2 * ix + 1), (tr, dp, ix)))
     if queue:
         to = jnp.where(to_hull, q_start + jnp.cumsum(to_hull) - 1, queue[0].shape[0])
         queue = tuple(q.at[to].set(x.astype(q.dtype), mode="drop") for q, x in zip(queue, (tr, dp, ix, *self_cols)))
     # An interval counts once, where it finishes or opens: one the queue holds when a call stops
     # is evaluated again in the next call (run_tree).
     frontier = frontier.at[jnp.where(done, tr, frontier.shape[0]), dp].add(1, mode="drop")
-    return (stack, (start + 2 * open_.sum()).astype(top.dtype), queue,
+    return (stack, (start + count.sum()).astype(top.dtype), queue,
             (q_start + to_hull.sum()).astype(n_queued.dtype), leaves, (n_leaves + final.sum()).astype(n_leaves.dtype),
-            frontier, steps.at[hull_now.astype(jnp.int32)].add(1))
+            frontier, steps.at[hull_now.astype(jnp.int32)].add(1).at[2].add(again.sum().astype(steps.dtype)))
 
 
 @functools.partial(jax.jit, static_argnames=("broad", "wide", "narrow", "hull", "leaf_capacity"))
@@ -326,12 +391,17 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
     left (``queue``: the hull queue's trajectory, depth and index columns, then the saved self-test
     columns, the first ``n_queued`` in use; none with the capsule test), the leaf columns
     (:data:`_LEAF_DTYPES`; the first ``n_leaves`` in use), ``frontier`` with this call's evaluations
-    added, and the steps run (first-stage steps, hull steps).
+    added, and the steps run (first-stage steps, hull steps; then :attr:`TreeLeaves.again`).
     ``self_check``: as :func:`~larc_jax.engine.kernels.self_intervals` takes it, or None (no self
     test). ``cascade``: ``(hulls, Links.of_capsule, Links.part_table, Links.of_part,
     early_stop_slack)`` for the cascade (the hull stage after the capsule stage), or None (the
     capsule test). ``max_depth`` is traced (an int32 scalar): every depth runs the same compiled
-    program."""
+    program.
+
+    Two phases, each its own loop over the same state: wide steps while the stack holds at least
+    ``wide // 2`` intervals and the hull queue fewer than ``hull``, then narrow steps (first-stage
+    or hull) until that holds again, and so on. A step's bookkeeping (its prefix sums and scatters)
+    runs on its phase's lanes: a narrow step's on 16 or 32, not on the wide step's 256."""
     args = (robot, capsules, splines, obstacles, bounds, scene_of, t_start, t_end, margin, self_check, cascade)
     capacity = stack[0].shape[0]
     leaves = tuple(jnp.zeros(leaf_capacity, d) for d in _LEAF_DTYPES)
@@ -339,14 +409,21 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
     q_dtypes = (*(s.dtype for s in stack), *(() if self_check is None else _RECORD_DTYPES))
     queue = () if cascade is None else tuple(jnp.zeros(wide + hull, d) for d in q_dtypes)
     grow = max(wide, 2 * hull)
+    step = functools.partial(_step, args, max_depth, broad, (wide, narrow, hull))
 
     def room(state):
         top, n_queued, n_leaves = state[1], state[3], state[5]
         return (((top > 0) | (n_queued > 0)) & (top + grow <= capacity) & (n_leaves + wide <= leaf_capacity))
 
-    return jax.lax.while_loop(room, functools.partial(_step, args, max_depth, broad, (wide, narrow, hull)),
-                              (stack, top, queue, jnp.int32(0), leaves, jnp.int32(0), frontier,
-                               jnp.zeros(2, jnp.int32)))
+    def wide_now(state):
+        return (state[1] >= wide // 2) & (state[3] < hull)
+
+    def phases(state):
+        state = jax.lax.while_loop(lambda s: room(s) & wide_now(s), functools.partial(step, False), state)
+        return jax.lax.while_loop(lambda s: room(s) & ~wide_now(s), functools.partial(step, True), state)
+
+    return jax.lax.while_loop(room, phases, (stack, top, queue, jnp.int32(0), leaves, jnp.int32(0), frontier,
+                                             jnp.zeros(3, jnp.int32)))
 
 
 @functools.lru_cache(maxsize=None)
@@ -390,7 +467,7 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
                                                 np.float64(early_stop_slack(batch.dtype)))
     args = (batch.robot, batch.capsules, batch.splines, batch.obstacles, batch.bounds, pad(batch.scene_of),
             pad(batch.t_start), pad(batch.t_end), batch.margin, self_check, cascade)
-    found, calls, steps = [], 0, np.zeros(2, np.int64)
+    found, calls, steps = [], 0, np.zeros(3, np.int64)
     while len(pending[0]):
         take = min(len(pending[0]), capacity - grow)  # the top of the pending stack, deepest first
         stack = tuple(np.concatenate([p[len(p) - take:], np.zeros(capacity - take, p.dtype)]) for p in pending)
@@ -410,4 +487,5 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     g, guard, cap, box, other, stage = (x[order] for x in columns)
     record = LeafRecord(g, guard, cap.astype(np.int64), box.astype(np.int64), other.astype(np.int64), stage)
     return TreeLeaves(traj[order].astype(np.int64), depth[order].astype(np.int64), index[order], t0[order], t1[order],
-                      record, np.array(frontier)[:n_traj, : max_depth + 1], calls, int(steps.sum()), int(steps[1]))
+                      record, np.array(frontier)[:n_traj, : max_depth + 1], calls, int(steps[:2].sum()), int(steps[1]),
+                      int(steps[2]))
