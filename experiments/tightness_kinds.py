@@ -45,6 +45,7 @@ Stages (each skipped while its inputs' fingerprint is unchanged; ``--force`` rer
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import multiprocessing as mp
@@ -93,7 +94,7 @@ MESH_EDGE_MM = 60.0
 FIELDS = ["traj_id", "kind", "padding_mm", "duration_s", "n_waypoints", "truth_m", "truth_t", "truth_link",
           "truth_box", "fcl_queries", "truth_time_s", "key"]
 
-__all__ = ["main", "KINDS", "CONFIGS", "kind_entries", "fcl_groups", "quaternion_matrix"]
+__all__ = ["main", "KINDS", "CONFIGS", "kind_entries", "fcl_groups", "quaternion_matrix", "pool_map"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -414,13 +415,15 @@ def stage_generate(plan: Plan, workers: int, code_fp: str) -> None:
             jobs.append(dict(kind=kind, padding_mm=p, pairs=plan.pairs, scene=str(plan.scene(kind)),
                              folder=str(plan.folder(kind, p)), fingerprint=fp))
     print(f"[tightness_kinds] generate: {len(jobs)} (kind, padding) jobs to run", flush=True)
-    results = _pool_map(_generate_job, jobs, workers)
+    results = pool_map(_generate_job, jobs, workers)
     for r in results:
         print(f"[tightness_kinds] generate: {r['kind']}, padding {r['padding_mm']} mm: {r['accepted']} pairs in "
               f"{r['attempts']} attempts, {r['elapsed_s']} s {r['outcomes']}", flush=True)
 
 
-def _pool_map(fn, jobs, workers: int):
+def pool_map(fn, jobs, workers: int):
+    """``fn`` over ``jobs`` in ``workers`` spawned processes (in this one for one worker or one job), results
+    as they finish: the planning and truth stages' only way to run their jobs."""
     if workers <= 1 or len(jobs) <= 1:
         yield from map(fn, jobs)
         return
@@ -472,7 +475,7 @@ def stage_truth(plan: Plan, workers: int, code_fp: str) -> None:
             jobs.append(dict(r, path=str(r["path"]), scene=str(scene), key=key))
     order = [r["traj_id"] for r in plan.trajectories()]
     print(f"[tightness_kinds] truth: {len(rows)} cached, {len(jobs)} to compute", flush=True)
-    for k, row in enumerate(_pool_map(_truth_job, jobs, workers), 1):
+    for k, row in enumerate(pool_map(_truth_job, jobs, workers), 1):
         rows[row["traj_id"]] = row
         write_frame(path, pd.DataFrame([rows[i] for i in order if i in rows], columns=FIELDS))
         print(f"[tightness_kinds] truth {k}/{len(jobs)}: {row['traj_id']} {row['truth_m'] * 1000:+.2f} mm "
@@ -569,30 +572,23 @@ def stage_tables(plan: Plan) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def _sources(*objects) -> str:
-    """SHA-256 of the source of ``objects`` and of this module's constants (a stage's own code)."""
-    import hashlib
-    import inspect
-
-    consts = {k: repr(v) for k, v in globals().items() if k.isupper()}
-    text = json.dumps(consts, sort_keys=True) + "".join(inspect.getsource(o) for o in objects)
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
 def main(argv=None) -> int:
-    from experiments.fingerprints import code_fingerprint
+    from experiments.fingerprints import code_fingerprint, source_fingerprint
 
     args, out = driver_args(argv, __doc__.splitlines()[0], "tightness_kinds", "two kinds, one padding, one pair")
     plan = Plan(out=out, kinds=("box", "points") if args.quick else KINDS,
                 paddings_mm=(20,) if args.quick else PADDINGS_MM, pairs=1 if args.quick else PAIRS)
     params = dict(kinds=plan.kinds, paddings=plan.paddings_mm, pairs=plan.pairs)
     # Each stage depends on the code it runs: the generator's closure and this module's planning
-    # code; the truth module, the FCL models and this module's FCL objects; larc_jax whole.
-    scenes_code = _sources(quaternion_matrix, _about, _pose, _box_mesh_mm, _cloud, kind_entries, write_scenes)
-    gen_code = code_fingerprint(["experiments.generate"]) + _sources(fcl_groups, _cells, planning_entries, KindContext,
+    # code; the truth module, the FCL models and this module's FCL objects; larc_jax whole. A stage's
+    # own code is its functions' normalised source and this module's public constants, paths relative
+    # to the repository (the same fingerprint in every clone).
+    sources = functools.partial(source_fingerprint, globals())
+    scenes_code = sources(quaternion_matrix, _about, _pose, _box_mesh_mm, _cloud, kind_entries, write_scenes)
+    gen_code = code_fingerprint(["experiments.generate"]) + sources(fcl_groups, _cells, planning_entries, KindContext,
                                                                        _generate_job, stage_generate)
     truth_code = files_fingerprint([ROOT / "experiments" / "mesh_truth.py", ROOT / "experiments" / "collision.py"]) \
-        + _sources(fcl_groups, _cells, truth_obstacles, scene_entries, _truth_job, stage_truth)
+        + sources(fcl_groups, _cells, truth_obstacles, scene_entries, _truth_job, stage_truth)
     lib = code_fingerprint(["larc_jax"])
     t0 = time.perf_counter()
     scene_files = [plan.scene(k) for k in plan.kinds] + [out / "scenes" / STL_NAME, out / "scenes" / CLOUD_NAME]
@@ -606,12 +602,12 @@ def main(argv=None) -> int:
     data = [r["path"] for r in plan.trajectories()]
     run_stage(out, "truth", files_fingerprint(data + scene_files, dict(params, code=truth_code)), [out / "truth.csv"],
               lambda: stage_truth(plan, args.workers, truth_code), args.force, tag="tightness_kinds")
-    _WORKER.clear()  # filled by an in-process truth (--workers 1); _sources hashes it among the constants
-    cert_code = lib + _sources(stage_certify)
+    _WORKER.clear()  # an in-process truth's (--workers 1) FCL models, no longer needed
+    cert_code = lib + sources(stage_certify)
     run_stage(out, "certify", files_fingerprint(data + scene_files, dict(params, code=cert_code, configs=CONFIGS)),
               [out / "certification.csv"], lambda: stage_certify(plan), args.force, tag="tightness_kinds")
     run_stage(out, "tables", files_fingerprint([out / "truth.csv", out / "certification.csv"],
-                                               dict(params, code=_sources(stage_tables, bin_labels))),
+                                               dict(params, code=sources(stage_tables, bin_labels))),
               [out / "table.md", out / "goal.md", out / "summary.json"], lambda: stage_tables(plan), args.force,
               tag="tightness_kinds")
     print(f"[tightness_kinds] all stages in {time.perf_counter() - t0:.1f} s; results in {out}", flush=True)

@@ -70,7 +70,8 @@ def test_camera_cell_reads_its_files():
 @pytest.mark.parametrize("entry,needle", [
     ({"type": "mesh"}, r"obstacles\[0\]\.file must be a file name"),
     ({"type": "mesh", "file": "nowhere.stl"}, r"nowhere\.stl"),
-    ({"type": "points", "file": "cloud.pcd"}, r"points are read from \.npy .* or \.ply"),
+    ({"type": "points", "file": "cloud.xyz"}, r"points are read from \.npy .*, \.ply or \.pcd files, not '\.xyz'"),
+    ({"type": "points", "file": "cloud.pcd"}, r"cloud\.pcd: not a readable \.pcd file"),
     ({"type": "points", "file": "flat.npy"}, r"expected an \(N, 3\) array"),
     ({"type": "points", "file": "nan.npy"}, r"point 1 is not finite"),
     ({"type": "points", "file": "ok.npy", "radius": -1}, r"radius must not be negative"),
@@ -83,6 +84,7 @@ def test_point_set_entries_errors_name_the_entry(tmp_path, entry, needle):
     np.save(tmp_path / "nan.npy", np.array([[0, 0, 0], [np.nan, 0, 0]]))
     np.save(tmp_path / "ok.npy", np.zeros((4, 3)))
     (tmp_path / "cloud.pcd").write_text("VERSION .7\n")
+    (tmp_path / "cloud.xyz").write_text("0 0 0\n")
     (tmp_path / "junk.stl").write_bytes(b"\x00" * 7)
     shutil.copy(EX / "bracket.stl", tmp_path / "ok.stl")
     source = str(tmp_path / "scene.yaml")
@@ -361,6 +363,91 @@ def test_camera_cell_certifies_verifies_and_refuses_a_changed_cloud(robot, capsu
     np.save(buf, cloud)
     (tmp_path / "table_cloud.npy").write_bytes(buf.getvalue())
     with pytest.raises(Exception, match="obstacles"):
+        verify_certificate(path)
+
+
+def test_camera_cell_from_a_pcd_certifies_and_verifies_as_from_its_npy(robot, capsules, tmp_path):
+    """The camera cell with its cloud given as a PCL .pcd file (float64 fields, binary_compressed,
+    one pixel with no return): the scene holds the .npy's pieces exactly, reach_left's result is
+    the same, the certificate states what the .pcd reading assumes and verifies, and a changed
+    .pcd is refused."""
+    import json
+
+    import pypcd4
+    import yaml
+
+    from larc_jax import certify, verify_certificate, write_certificate
+    from larc_jax.model.trajectory_files import read_trajectory
+
+    cloud = np.load(EX / "table_cloud.npy")
+    with_gap = np.insert(cloud, 7, np.nan, axis=0)  # a pixel with no return
+    pypcd4.PointCloud.from_points(with_gap, ("x", "y", "z"), (np.float64,) * 3).save(
+        tmp_path / "table.pcd", encoding=pypcd4.Encoding.BINARY_COMPRESSED)
+    shutil.copy(EX / "bracket.stl", tmp_path / "bracket.stl")
+    doc = yaml.safe_load((EX / "cell_camera.yaml").read_text())
+    doc["obstacles"][1]["file"] = "table.pcd"
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(doc))
+    scene, npy = read_scene(tmp_path / "cell.yaml"), _camera_scene()
+    assert len(scene.point_sets.pieces) == len(npy.point_sets.pieces)
+    assert all(np.array_equal(a, b) for a, b in zip(scene.point_sets.pieces, npy.point_sets.pieces))
+    traj = read_trajectory(EX / "reach_left.yaml")
+    res = certify(traj, scene, robot, capsules, method="larc")
+    ref = certify(traj, npy, robot, capsules, method="larc")
+    assert res[0].certified
+    assert (res[0].min_clearance_m, res[0].evaluations) == (ref[0].min_clearance_m, ref[0].evaluations)
+    path = tmp_path / "cert.json"
+    write_certificate(path, res, [traj], [scene], robot, capsules, trajectory_files=[EX / "reach_left.yaml"],
+                      scene_files=[tmp_path / "cell.yaml"])
+    assumes = json.loads(path.read_text())["scenes"][0]["assumes"][1]
+    assert assumes == ("table: points, each a ball of radius 0.002 m, read from a .pcd file: its points with a "
+                       "finite x, y, z (a point without one, a pixel with no return, is no obstacle), its header's "
+                       "VIEWPOINT not applied")
+    assert verify_certificate(path).scene_files[0].assumes[1] == assumes
+    with_gap[0, 2] += 1e-3
+    pypcd4.PointCloud.from_points(with_gap, ("x", "y", "z"), (np.float64,) * 3).save(
+        tmp_path / "table.pcd", encoding=pypcd4.Encoding.BINARY_COMPRESSED)
+    with pytest.raises(Exception, match="obstacles"):
+        verify_certificate(path)
+
+
+def test_bracket_in_a_moveit_scene_certifies_and_verifies_as_in_yaml(robot, capsules, tmp_path):
+    """The camera cell's bracket written into a MoveIt .scene file as MoveIt writes a mesh (its
+    vertices and triangles inline, the object's pose): reach_left's result equals the YAML
+    mesh entry's, the certificate verifies against the .scene, and a moved vertex is refused."""
+    import trimesh
+    import yaml
+
+    from larc_jax import certify, verify_certificate, write_certificate
+    from larc_jax.model.trajectory_files import read_trajectory
+    from larc_jax.products.verify import Refuted
+
+    mesh = trimesh.load(EX / "bracket.stl", force="mesh", process=True)
+    entry = yaml.safe_load((EX / "cell_camera.yaml").read_text())["obstacles"][0]
+    pose = entry["pose"]
+
+    def write(V):
+        rows = [" ".join(repr(float(x)) for x in v) for v in V] + [" ".join(map(str, f)) for f in mesh.faces]
+        (tmp_path / "cell.scene").write_text("\n".join(
+            ["cell", "* bracket", " ".join(map(repr, pose["position"])), " ".join(map(repr, pose["orientation"])),
+             "1", "mesh", f"{len(V)} {len(mesh.faces)}", *rows, "0 0 0", "0 0 0 1", "0.5 0.5 0.5 1", "0", "."]) + "\n")
+
+    write(mesh.vertices)
+    shutil.copy(EX / "bracket.stl", tmp_path / "bracket.stl")
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump({"frame": "base_link", "obstacles": [entry]}))
+    traj = read_trajectory(EX / "reach_left.yaml")
+    scene, ref = read_scene(tmp_path / "cell.scene"), read_scene(tmp_path / "cell.yaml")
+    res = certify(traj, scene, robot, capsules, method="larc")
+    want = certify(traj, ref, robot, capsules, method="larc")
+    assert res[0].certified and (res[0].evaluations, res[0].min_clearance_m) == (want[0].evaluations,
+                                                                                 want[0].min_clearance_m)
+    path = tmp_path / "cert.json"
+    write_certificate(path, res, [traj], [scene], robot, capsules, trajectory_files=[EX / "reach_left.yaml"],
+                      scene_files=[tmp_path / "cell.scene"])
+    assert verify_certificate(path).scene_files[0].assumes == ref.point_sets.assumptions()
+    V = mesh.vertices.copy()
+    V[0, 2] += 1e-3
+    write(V)
+    with pytest.raises(Refuted, match=r"cell\.scene has sha256 [0-9a-f]{64}, the certificate records"):
         verify_certificate(path)
 
 

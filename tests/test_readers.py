@@ -135,7 +135,7 @@ def test_scene_multi_shape_object_and_empty_scene(tmp_path):
     assert empty.n_boxes == 0
 
 
-@pytest.mark.parametrize("shape,dims", [("mesh", "3 1"), ("plane", "0 0 1 0"), ("octree", "1")])
+@pytest.mark.parametrize("shape,dims", [("plane", "0 0 1 0"), ("octree", "1")])
 def test_scene_unsupported_shape_refused(tmp_path, shape, dims):
     text = f"s\n* ball\n0 0 0\n0 0 0 1\n1\n{shape}\n{dims}\n0 0 0\n0 0 0 1\n0 0 0 0\n0\n.\n"
     path = _write(tmp_path, "ball.scene", text)
@@ -143,6 +143,64 @@ def test_scene_unsupported_shape_refused(tmp_path, shape, dims):
         read_scene(path)
     msg = str(exc.value)
     assert msg.startswith(f"{path}:6: ") and "'ball'" in msg and shape in msg and "\n" not in msg
+
+
+def _mesh_scene(V, F, p_obj, q_obj, p_shape, q_shape) -> str:
+    """One object holding one mesh, as ``PlanningScene::saveGeometryToStream`` and
+    ``shapes::saveAsText`` write it (newer layout)."""
+    nums = lambda a: " ".join(repr(float(x)) for x in a)  # noqa: E731
+    return ("cell\n* fixture\n" + nums(p_obj) + "\n" + nums(q_obj) + "\n1\nmesh\n" + f"{len(V)} {len(F)}\n"
+            + "".join(nums(v) + "\n" for v in V) + "".join(" ".join(map(str, f)) + "\n" for f in F)
+            + nums(p_shape) + "\n" + nums(q_shape) + "\n0.5 0.5 0.5 1\n0\n.\n")
+
+
+@pytest.mark.parametrize("stl", ["bracket.stl", "box"])
+def test_scene_mesh_reads_as_the_yaml_mesh_of_its_triangles(tmp_path, stl):
+    """A .scene mesh (the example bracket, non-convex; a box, convex and watertight) is the mesh
+    obstacle a YAML ``type: mesh`` entry of the same triangles and the composed pose gives: the
+    same pieces, bit for bit, and the same solid or surface statement."""
+    import trimesh
+    import yaml
+
+    mesh = (trimesh.load(EXAMPLES / stl, force="mesh") if stl.endswith(".stl")
+            else trimesh.creation.box(extents=[0.3, 0.2, 0.1]))
+    mesh.export(tmp_path / "m.stl")
+    mesh = trimesh.load(tmp_path / "m.stl", force="mesh", process=True)  # as a scene's mesh file is read
+    r_obj, r_shape = Rotation.from_euler("xyz", [0.3, -0.2, 0.9]), Rotation.from_euler("z", 0.4)
+    p_obj, p_shape = np.array([0.4, -0.1, 0.2]), np.array([0.0, 0.05, 0.01])
+    path = _write(tmp_path, "cell.scene", _mesh_scene(mesh.vertices, mesh.faces, p_obj, r_obj.as_quat(), p_shape,
+                                                      r_shape.as_quat()))
+    scene = read_scene(path)
+    R = (r_obj * r_shape).as_matrix()
+    pose = {"position": (p_obj + r_obj.as_matrix() @ p_shape).tolist(),
+            "orientation": (r_obj * r_shape).as_quat().tolist()}
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump({"frame": "base_link", "obstacles": [
+        {"name": "fixture", "type": "mesh", "file": "m.stl", "pose": pose}]}))
+    want = read_scene(tmp_path / "cell.yaml").point_sets
+    got = scene.point_sets
+    assert got.kinds == ("mesh",) and got.names == ("fixture",) and scene.n_boxes == 0 and scene.shapes.count == 0
+    assert got.files == (str(path),) and got.assumptions() == want.assumptions()
+    assert got.solid == want.solid == ((stl == "box"),)
+    # The YAML pose goes through a quaternion; the .scene's composed rotation is the matrix product.
+    assert len(got.pieces) == len(want.pieces)
+    for a, b in zip(got.pieces, want.pieces):
+        np.testing.assert_allclose(a, b, atol=1e-15)
+    world = mesh.vertices @ R.T + p_obj + r_obj.as_matrix() @ p_shape
+    assert {tuple(np.round(v, 12)) for piece in got.pieces for v in piece} == {tuple(np.round(v, 12)) for v in world}
+
+
+@pytest.mark.parametrize("body,line,needle", [
+    ("3 1\n0 0 0\n1 0 0\n0 1 0\n0 1 3\n", 11, "triangle 0 names vertex 3, but the mesh has 3 vertices"),
+    ("3 0\n0 0 0\n1 0 0\n0 1 0\n", 7, "has no triangles"),
+    ("3 1\n0 0 0\n1 0 x\n0 1 0\n0 1 2\n", 9, "'x' is not a number"),
+    ("3 1\n0 0 0\n1 0 0\n0 1 0\n0 1 -2\n", 11, "'-2' is not a non-negative integer"),
+])
+def test_scene_mesh_errors_name_file_and_line(tmp_path, body, line, needle):
+    text = "s\n* m\n0 0 0\n0 0 0 1\n1\nmesh\n" + body + "0 0 0\n0 0 0 1\n0 0 0 0\n0\n.\n"
+    path = _write(tmp_path, "bad.scene", text)
+    with pytest.raises(LarcInputError) as exc:
+        read_scene(path)
+    assert str(exc.value).startswith(f"{path}:{line}: ") and needle in str(exc.value), str(exc.value)
 
 
 @pytest.mark.parametrize("shape,dims,want", [("sphere", "0.1", [0.1, 0, 0]), ("cylinder", "0.1 0.4", [0.1, 0.4, 0]),

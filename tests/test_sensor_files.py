@@ -2,10 +2,12 @@
 into the .npy clouds a scene reads. One-sided checks: every occupied OctoMap cube (the voxels
 inserted, computed from their keys in float64, independently of the binding) lies inside a
 written ball; every point a voxel reduction replaces lies inside its new ball; the .pcd points
-come back exactly; every bad input exits 2 naming the file."""
+come back exactly, converted or read by a scene itself; every bad input exits 2 naming the file
+(a scene's, its file and entry)."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +69,60 @@ def test_converted_camera_cloud_is_the_scene_cloud(capsys, tmp_path):
     assert scene.point_sets.names == ("table",) and scene.point_sets.radius == (0.0,)
     assert np.array_equal(np.concatenate(scene.point_sets.pieces[0]), np.concatenate(
         read_scene_pieces(cloud.astype(np.float64), tmp_path)))
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary", "binary_compressed"])
+def test_a_scene_reads_a_pcd_as_its_finite_points(tmp_path, encoding):
+    """A scene's ``type: points`` entry reads a .pcd itself: the pieces of its finite points (the
+    no-returns dropped), posed and grown as an .npy of those points; the file's bytes hashed."""
+    import hashlib
+
+    P = np.random.default_rng(2).uniform(-1, 1, size=(300, 4)).astype(np.float32)
+    P[[5, 200], 0] = np.nan
+    P[17, 2] = -np.inf
+    pypcd4.PointCloud.from_xyzi_points(P).save(tmp_path / "cam.pcd", encoding=pypcd4.Encoding(encoding))
+    # What the file holds (pypcd4's ascii writer prints 10 decimals, so not always P itself).
+    held = pypcd4.PointCloud.from_path(tmp_path / "cam.pcd").numpy(("x", "y", "z")).astype(np.float64)
+    finite = held[np.isfinite(held).all(axis=1)]
+    assert encoding == "ascii" or np.array_equal(finite, P[np.isfinite(P[:, :3]).all(axis=1), :3])
+    np.save(tmp_path / "cam.npy", finite)
+    pose = {"position": [0.1, -0.2, 0.3], "orientation": [0.0, 0.0, 0.6, 0.8]}
+    scenes = {}
+    for suffix in (".pcd", ".npy"):
+        (tmp_path / f"s{suffix}.yaml").write_text(yaml.safe_dump({"frame": "base_link", "obstacles": [
+            {"name": "cam", "type": "points", "file": f"cam{suffix}", "radius": 0.004, "pose": pose}]}))
+        scenes[suffix] = read_scene(tmp_path / f"s{suffix}.yaml", frame="base_link").point_sets
+    pcd, npy = scenes[".pcd"], scenes[".npy"]
+    assert len(pcd.pieces) == len(npy.pieces) and all(np.array_equal(a, b) for a, b in zip(pcd.pieces, npy.pieces))
+    assert sum(len(p) for p in pcd.pieces) == len(finite) == 297 and pcd.radius == (0.004,)
+    assert pcd.file_sha256 == (hashlib.sha256((tmp_path / "cam.pcd").read_bytes()).hexdigest(),)
+    assert "read from a .pcd file" in pcd.assumptions()[0] and ".pcd" not in npy.assumptions()[0]
+
+
+@pytest.mark.parametrize("make,needle", [
+    (lambda p: p.write_bytes(b"VERSION 0.7\nFIELDS x y\ngarbage"), "not a readable .pcd file"),
+    (lambda p: _pcd_without_z(p), "the .pcd file has no field z (fields: x, y)"),
+    (lambda p: pypcd4.PointCloud.from_xyz_points(np.full((3, 3), np.nan, np.float32)).save(p),
+     "the .pcd file has no point with a finite x, y, z"),
+])
+def test_a_scene_names_its_bad_pcd(tmp_path, make, needle):
+    make(tmp_path / "bad.pcd")
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"frame": "base_link", "obstacles": [
+        {"name": "a", "type": "points", "file": "bad.pcd"}]}))
+    with pytest.raises(LarcInputError) as err:
+        read_scene(tmp_path / "s.yaml", frame="base_link")
+    assert str(err.value).startswith(f"{tmp_path / 's.yaml'}: obstacles[0].file {tmp_path / 'bad.pcd'}: ")
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_scene_without_pypcd4_says_what_to_install(tmp_path, monkeypatch):
+    pypcd4.PointCloud.from_xyz_points(np.zeros((2, 3), np.float32)).save(tmp_path / "c.pcd")
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"frame": "base_link", "obstacles": [
+        {"name": "a", "type": "points", "file": "c.pcd"}]}))
+    monkeypatch.setitem(sys.modules, "pypcd4", None)  # import pypcd4 raises ImportError
+    needle = r"c\.pcd: reading \.pcd files needs pypcd4 \(pip install 'larc_jax\[clouds\]'\)"
+    with pytest.raises(LarcInputError, match=needle):
+        read_scene(tmp_path / "s.yaml", frame="base_link")
 
 
 def read_scene_pieces(points: np.ndarray, folder: Path):

@@ -219,7 +219,8 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
     pt = sub.add_parser(
         "points", parents=common, help="convert a .pcd point cloud or an OctoMap (.bt/.ot) into scene clouds (.npy)",
         description="Write the .npy clouds a scene's `type: points` entries read, and print those entries (YAML, "
-                    "with what each assumes as comments): a .pcd file's finite x, y, z points; an OctoMap's occupied "
+                    "with what each assumes as comments): a .pcd file's finite x, y, z points (a scene reads a .pcd "
+                    "itself too; convert one to reduce it with --voxel); an OctoMap's occupied "
                     "leaves, one cloud per leaf size, each leaf a ball of radius size*sqrt(3)/2 about its centre. "
                     "Exit status: 0 written, 2 bad input, 3 internal error.")
     pt.add_argument("source", metavar="FILE", help=".pcd (needs pypcd4), .bt or .ot (needs octomap-python); "

@@ -81,7 +81,8 @@ __all__ = ["supports", "run_tree", "tree_program", "TreeLeaves", "dyadic_ends_jn
 WIDE_STEP = 256
 """Intervals a wide step evaluates (the stack holds at least half of it)."""
 NARROW_STEP = 16
-"""Intervals a narrow step evaluates (the stack holds fewer than ``WIDE_STEP // 2``). A third,
+"""Intervals a narrow step evaluates (the stack holds fewer than ``WIDE_STEP // 2``, or the hull
+queue a full hull step, :func:`tree_program`). A third,
 middle width (or four widths, 8 to 256, each step taking the smallest that holds the stack) was
 slower one trajectory per call on Stage B and about doubled the compile time (measured while
 developing, README "The depth loop on the device"): a wide step mostly evaluates padding on a

@@ -2,9 +2,16 @@
 
 A scene's ``obstacles:`` entry of ``type: mesh`` (a triangle mesh file: STL, OBJ, PLY, or DAE,
 read by trimesh, scaled per axis, then posed) or ``type: points`` (an ``.npy`` file holding an
-(N, 3) array, or a ``.ply`` point cloud; posed; optionally a ``radius`` per cloud: every point is
-then a ball) becomes one or more *pieces*, each given by its vertices in the base frame and
-tested as their convex hull (:mod:`larc_jax.obstacles.convex_shapes`).
+(N, 3) array, a ``.ply`` point cloud, or a PCL ``.pcd`` file; posed; optionally a ``radius`` per
+cloud: every point is then a ball) becomes one or more *pieces*, each given by its vertices in
+the base frame and tested as their convex hull (:mod:`larc_jax.obstacles.convex_shapes`).
+
+A ``.pcd`` file (:func:`read_pcd_points`, read by pypcd4: ascii, binary and binary_compressed) gives
+its ``x, y, z`` fields as float64. A point without a finite coordinate is an organised cloud's
+pixel with no return (PCL's NaN): it has no place, so it is no obstacle and is dropped (PCL's
+``removeNaNFromPointCloud``); a certificate states that, and that the header's VIEWPOINT (the
+sensor's pose) is not applied to the points, as PCL does not apply it on reading
+(:meth:`PointSets.assumptions`): the entry's ``pose`` places the cloud.
 
 Why the pieces contain the obstacle. A piece is the hull of a group of the obstacle's points;
 for a mesh, the groups are groups of whole triangles and a piece holds all three corners of
@@ -39,14 +46,16 @@ import numpy as np
 from ..errors import LarcInputError
 from ..io import read_input_bytes, real_array, short_repr
 
-__all__ = ["PointSets", "convex_pieces", "load_mesh_points", "load_cloud_points", "MESH_PIECE_TRIANGLES",
-           "CLOUD_PIECE_POINTS", "POINT_SET_KINDS"]
+__all__ = ["PointSets", "convex_pieces", "load_mesh_points", "load_cloud_points", "read_pcd_points", "mesh_from_arrays",
+           "posed_mesh_pieces", "MESH_PIECE_TRIANGLES", "CLOUD_PIECE_POINTS", "POINT_SET_KINDS", "PCD_SUFFIX"]
 
 POINT_SET_KINDS = ("mesh", "points")
 MESH_PIECE_TRIANGLES = 16
 """Triangles per mesh piece at most (a non-convex mesh)."""
 CLOUD_PIECE_POINTS = 64
 """Points per cloud piece at most."""
+PCD_SUFFIX = ".pcd"
+"""A PCL point-cloud file (:func:`read_pcd_points`)."""
 MAX_POINTS = 1_000_000
 """Points (or mesh vertices) per obstacle at most."""
 
@@ -113,7 +122,10 @@ class PointSets:
         out = []
         for k, (kind, name, r) in enumerate(zip(self.kinds, self.names, self.radius)):
             if kind == "points":
-                out.append(f"{name}: points, each a ball of radius {r!r} m")
+                pcd = (", read from a .pcd file: its points with a finite x, y, z (a point without one, a pixel with "
+                       "no return, is no obstacle), its header's VIEWPOINT not applied"
+                       if Path(self.files[k]).suffix.lower() == PCD_SUFFIX else "")
+                out.append(f"{name}: points, each a ball of radius {r!r} m{pcd}")
             elif self.solid and self.solid[k]:
                 out.append(f"{name}: mesh, a solid (convex and watertight: its hull)")
             else:
@@ -194,20 +206,73 @@ def load_mesh_points(path: Path, scale: np.ndarray, source: str, where: str):
     except Exception as exc:  # trimesh raises many kinds for a bad file
         raise LarcInputError(f"{source}: {where}.file {path}: not a readable mesh ({type(exc).__name__}: "
                              f"{' '.join(str(exc).split())[:200]})") from None
-    V = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
-    F = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
-    if len(F) == 0 or len(V) == 0:
-        raise LarcInputError(f"{source}: {where}.file {path}: the mesh has no triangles")
-    if len(V) > MAX_POINTS:
-        raise LarcInputError(f"{source}: {where}.file {path}: {len(V)} vertices, more than {MAX_POINTS}")
-    if not np.isfinite(V).all():
-        raise LarcInputError(f"{source}: {where}.file {path}: a vertex is not finite")
-    convex = bool(mesh.is_watertight and mesh.is_convex)
+    V, F, convex = _checked_mesh(mesh, f"{source}: {where}.file {path}")
     return V * scale, F, convex, hashlib.sha256(data).hexdigest()
 
 
+def mesh_from_arrays(vertices: np.ndarray, triangles: np.ndarray, where: str):
+    """A mesh given by its arrays (a MoveIt ``.scene`` file's inline mesh), processed as a mesh
+    file is (trimesh merges equal vertices): vertices (V, 3), triangles (T, 3), whether convex;
+    :class:`LarcInputError` starting with ``where``."""
+    import trimesh
+
+    return _checked_mesh(trimesh.Trimesh(vertices=np.asarray(vertices, np.float64),
+                                         faces=np.asarray(triangles, np.int64), process=True), where)
+
+
+def _checked_mesh(mesh, where: str):
+    V = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
+    F = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
+    if len(F) == 0 or len(V) == 0:
+        raise LarcInputError(f"{where}: the mesh has no triangles")
+    if len(V) > MAX_POINTS:
+        raise LarcInputError(f"{where}: {len(V)} vertices, more than {MAX_POINTS}")
+    if not np.isfinite(V).all():
+        raise LarcInputError(f"{where}: a vertex is not finite")
+    return V, F, bool(mesh.is_watertight and mesh.is_convex)
+
+
+def posed_mesh_pieces(V: np.ndarray, F: np.ndarray, convex: bool, p, R) -> list[np.ndarray]:
+    """A mesh's pieces in the base frame (read-only): the whole mesh if convex, else groups of at
+    most :data:`MESH_PIECE_TRIANGLES` whole triangles (module docstring)."""
+    world = _pose_points(V, p, R)
+    pieces = [world] if convex else convex_pieces(world, F, MESH_PIECE_TRIANGLES)
+    for piece in pieces:
+        piece.setflags(write=False)
+    return pieces
+
+
+def read_pcd_points(data: bytes, where: str):
+    """``(points (N, 3) float64, viewpoint (7,))`` of a PCL ``.pcd`` file's bytes: its ``x, y, z``
+    fields, non-finite coordinates kept (the caller drops or reports them), and the header's
+    VIEWPOINT (tx ty tz qw qx qy qz); :class:`LarcInputError` starting with ``where`` (the file, or
+    the scene entry and file) for a file pypcd4 cannot read, one without x, y or z, or pypcd4
+    missing."""
+    import io
+
+    try:
+        import pypcd4
+    except ImportError:
+        raise LarcInputError(f"{where}: reading .pcd files needs pypcd4 (pip install 'larc_jax[clouds]')") from None
+    try:
+        cloud = pypcd4.PointCloud.from_fileobj(io.BytesIO(data))
+        fields = tuple(cloud.fields)
+    except Exception as exc:  # noqa: BLE001 - pypcd4 raises many kinds for a bad file
+        raise LarcInputError(f"{where}: not a readable .pcd file ({type(exc).__name__}: "
+                             f"{' '.join(str(exc).split())[:200]})") from None
+    missing = [f for f in ("x", "y", "z") if f not in fields]
+    if missing:
+        raise LarcInputError(f"{where}: the .pcd file has no field {', '.join(missing)} (fields: {', '.join(fields)})")
+    try:
+        P = np.asarray(cloud.numpy(("x", "y", "z")), np.float64).reshape(-1, 3)
+    except Exception as exc:  # noqa: BLE001 - a header that does not match its data
+        raise LarcInputError(f"{where}: the .pcd file's x, y, z cannot be read ({type(exc).__name__})") from None
+    return P, np.asarray(cloud.metadata.viewpoint, np.float64)
+
+
 def load_cloud_points(path: Path, source: str, where: str):
-    """Points (N, 3) of an ``.npy`` or ``.ply`` file, and the file's SHA-256."""
+    """Points (N, 3) of an ``.npy``, ``.ply`` or ``.pcd`` file (a ``.pcd``'s points without a finite
+    x, y, z dropped: module docstring), and the file's SHA-256."""
     suffix = path.suffix.lower()
     data = _read(path, source, where, "points")
     if suffix == ".npy":
@@ -224,9 +289,15 @@ def load_cloud_points(path: Path, source: str, where: str):
             P = np.asarray(trimesh.load(trimesh.util.wrap_as_stream(data), file_type="ply").vertices)
         except Exception as exc:
             raise LarcInputError(f"{source}: {where}.file {path}: not a readable .ply ({type(exc).__name__})") from None
+    elif suffix == PCD_SUFFIX:
+        P, _ = read_pcd_points(data, f"{source}: {where}.file {path}")
+        P = P[np.isfinite(P).all(axis=1)]  # no return: no obstacle (module docstring)
+        if len(P) == 0:
+            raise LarcInputError(f"{source}: {where}.file {path}: the .pcd file has no point with a finite x, y, z")
     else:
-        raise LarcInputError(f"{source}: {where}.file {path}: points are read from .npy (an (N, 3) array) or .ply "
-                             f"files, not {short_repr(suffix or path.name)} (convert a .pcd with your PCL tools)")
+        raise LarcInputError(f"{source}: {where}.file {path}: points are read from .npy (an (N, 3) array), .ply or "
+                             f".pcd files, not {short_repr(suffix or path.name)} (larc points converts OctoMap "
+                             "files)")
     if P.dtype.kind not in "iuf" or P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
         raise LarcInputError(f"{source}: {where}.file {path}: expected an (N, 3) array of numbers with N >= 1, "
                              f"got shape {P.shape} of dtype {P.dtype}")
@@ -248,12 +319,9 @@ def point_set_entry(kind: str, entry: dict, base: Path, source: str, where: str,
     path = Path(file) if Path(file).is_absolute() else base / file
     if kind == "mesh":
         V, F, convex, sha = load_mesh_points(path, scale, source, where)
-        world = _pose_points(V, p, R)
-        pieces = [world] if convex else convex_pieces(world, F, MESH_PIECE_TRIANGLES)
-    else:
-        convex = False
-        P, sha = load_cloud_points(path, source, where)
-        pieces = convex_pieces(_pose_points(P, p, R), None, CLOUD_PIECE_POINTS)
+        return str(path), sha, posed_mesh_pieces(V, F, convex, p, R), convex
+    P, sha = load_cloud_points(path, source, where)
+    pieces = convex_pieces(_pose_points(P, p, R), None, CLOUD_PIECE_POINTS)
     for piece in pieces:
         piece.setflags(write=False)
-    return str(path), sha, pieces, convex
+    return str(path), sha, pieces, False

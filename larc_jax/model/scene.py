@@ -40,8 +40,13 @@ MoveIt planning frame, which is taken to be the robot base frame (PIPER: ``base_
 saved in another planning frame must be re-expressed first. A box whose orientation (object
 pose composed with shape pose) is exactly the identity becomes an axis-aligned box; any other
 box, and every sphere, cylinder and cone (``sphere`` r; ``cylinder`` / ``cone`` r l), becomes a
-posed shape with its rotation kept (:class:`~larc_jax.model.shapes.Shapes`). Meshes, planes and
-octrees are refused.
+posed shape with its rotation kept (:class:`~larc_jax.model.shapes.Shapes`). A mesh (``mesh``, then
+``V T``, V vertices ``x y z`` in the shape's frame, T triangles ``i j k`` indexing them, as
+``shapes::saveAsText`` writes it) becomes a mesh obstacle placed by the composed pose, exactly as
+a YAML ``type: mesh`` entry of the same triangles (:mod:`larc_jax.model.point_sets`: a convex
+watertight mesh is a solid, any other its surface; its file is the ``.scene`` file). A plane
+(``plane a b c d``, infinite) is refused: nothing finite holds it; give the part of it the arm can
+reach as a thin box. MoveIt does not write octrees to ``.scene`` files; the word is refused too.
 """
 
 from __future__ import annotations
@@ -57,8 +62,9 @@ import numpy as np
 import yaml
 
 from ..errors import LarcInputError
-from ..io import check_keys, deferred_log, parse_vector, parse_yaml, read_input_text, real_array, short_repr
-from .point_sets import PointSets
+from ..io import (check_keys, deferred_log, file_sha256, parse_vector, parse_yaml, read_input_text, real_array,
+                  short_repr)
+from .point_sets import MAX_POINTS, PointSets, mesh_from_arrays, posed_mesh_pieces
 from .shapes import QUATERNION_NORM_TOLERANCE, Shapes, rotation_from_quaternion, shapes_from_entries
 
 __all__ = ["Scene", "read_scene", "read_moveit_scene", "scene_from_dict", "pad_scenes"]
@@ -285,7 +291,7 @@ class _Tokens:
         return p, rotation_from_quaternion(q / norm)
 
 
-_REFUSED_SHAPES = ("mesh", "plane", "octree")
+_REFUSED_SHAPES = ("plane", "octree")
 _SHAPE_NUMBERS = {"box": 3, "sphere": 1, "cylinder": 2, "cone": 2}
 """Dimensions MoveIt writes per shape: box sx sy sz; sphere r; cylinder and cone r l."""
 
@@ -293,9 +299,9 @@ _SHAPE_NUMBERS = {"box": 3, "sphere": 1, "cylinder": 2, "cone": 2}
 def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
     """Read a MoveIt ``.scene`` text file (old and new layouts; see the module docstring).
 
-    Errors are ``file:line: message``. Boxes, spheres, cylinders and cones are accepted, their
-    rotations kept (an exactly axis-aligned box is an axis-aligned box). The scene's frame is ``frame`` (default
-    ``base_link``): the file itself names none.
+    Errors are ``file:line: message``. Boxes, spheres, cylinders, cones and meshes are accepted,
+    their rotations kept (an exactly axis-aligned box is an axis-aligned box). The scene's frame is
+    ``frame`` (default ``base_link``): the file itself names none.
     """
     path = Path(path)
     source = str(path)
@@ -313,6 +319,7 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
             break
     lo, hi, names = [], [], []
     shape_rows: list = []  # (kind, name, dims, p_world_shape, R_world_shape)
+    mesh_rows: list = []  # (name, pieces, solid)
     seen: set[str] = set()
     while True:
         marker, line, rest = toks.next("'* object name' or the end line '.'")
@@ -334,11 +341,15 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
         n_shapes, _ = toks.count(f"object '{obj}' shape count")
         for k in range(n_shapes):
             shape, sline, _ = toks.next(f"object '{obj}' shape {k} type")
+            shape_name = obj if n_shapes == 1 else f"{obj}[{k}]"
+            if shape == "mesh":
+                mesh_rows.append((shape_name, *_moveit_mesh(toks, obj, k, sline, p_obj, r_obj)))
+                continue
             if shape not in _SHAPE_NUMBERS:
                 kind = shape if shape in _REFUSED_SHAPES else f"unknown shape type '{shape}'"
                 raise toks.error(
-                    sline, f"object '{obj}' shape {k} is a {kind}: only boxes, spheres, cylinders and "
-                    f"cones are supported (replace it by one that encloses it)")
+                    sline, f"object '{obj}' shape {k} is a {kind}: only boxes, spheres, cylinders, cones and "
+                    f"meshes are supported (replace it by one that encloses it)")
             numbers = np.empty(_SHAPE_NUMBERS[shape])
             for i in range(len(numbers)):
                 numbers[i], dline = toks.number(f"object '{obj}' {shape} size")
@@ -349,7 +360,6 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
                 toks.number(f"object '{obj}' shape {k} colour")
             center = p_obj + r_obj @ p_shape
             rot = r_obj @ r_shape
-            shape_name = obj if n_shapes == 1 else f"{obj}[{k}]"
             if shape == "box" and bool((rot == np.eye(3)).all()):  # exactly axis-aligned
                 lo.append(center - numbers / 2.0)
                 hi.append(center + numbers / 2.0)
@@ -369,10 +379,39 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
                     dims=np.array([r[2] for r in shape_rows]).reshape(-1, 3),
                     p_world_shape=np.array([r[3] for r in shape_rows]).reshape(-1, 3),
                     R_world_shape=np.array([r[4] for r in shape_rows]).reshape(-1, 3, 3))
+    sha = file_sha256(path, "scene file") if mesh_rows else ""
+    point_sets = PointSets(kinds=("mesh",) * len(mesh_rows), names=tuple(r[0] for r in mesh_rows),
+                           files=(source,) * len(mesh_rows), file_sha256=(sha,) * len(mesh_rows),
+                           radius=(0.0,) * len(mesh_rows), pieces=tuple(x for r in mesh_rows for x in r[1]),
+                           owner=tuple(o for o, r in enumerate(mesh_rows) for _ in r[1]),
+                           solid=tuple(r[2] for r in mesh_rows))
     return Scene(
         lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
-        name=path.stem, frame=frame or "", source=source, shapes=shapes,
+        name=path.stem, frame=frame or "", source=source, shapes=shapes, point_sets=point_sets,
     )
+
+
+def _moveit_mesh(toks: _Tokens, obj: str, k: int, line: int, p_obj, r_obj):
+    """A ``.scene`` mesh after its ``mesh`` word (module docstring): its pieces in the base frame and
+    whether it is a solid (convex and watertight)."""
+    what = f"object '{obj}' shape {k} (mesh)"
+    n_v, vline = toks.count(f"{what} vertex count")
+    n_t, tline = toks.count(f"{what} triangle count")
+    if n_v > MAX_POINTS:
+        raise toks.error(vline, f"{what} has {n_v} vertices, more than {MAX_POINTS}")
+    if n_t == 0:
+        raise toks.error(tline, f"{what} has no triangles")
+    V = np.array([toks.number(f"{what} vertex")[0] for _ in range(3 * n_v)]).reshape(-1, 3)
+    F = np.empty(3 * n_t, np.int64)
+    for i in range(len(F)):
+        F[i], iline = toks.count(f"{what} triangle")
+        if F[i] >= n_v:
+            raise toks.error(iline, f"{what} triangle {i // 3} names vertex {F[i]}, but the mesh has {n_v} vertices")
+    p_shape, r_shape = toks.pose(f"{what} pose")
+    for _ in range(4):
+        toks.number(f"{what} colour")
+    V, F, solid = mesh_from_arrays(V, F.reshape(-1, 3), f"{toks.source}:{line}: {what}")
+    return posed_mesh_pieces(V, F, solid, p_obj + r_obj @ p_shape, r_obj @ r_shape), solid
 
 
 def pad_scenes(scenes: Sequence[Scene], n_boxes: int | None = None):

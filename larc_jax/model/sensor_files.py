@@ -1,9 +1,10 @@
 """Point clouds and occupancy maps from sensor files, as the ``.npy`` clouds a scene reads.
 
-A scene's ``type: points`` entry reads an (N, 3) ``.npy`` array or a ``.ply`` cloud, with one
-``radius`` per cloud (:mod:`larc_jax.model.point_sets`). Cameras and mapping stacks write other
-formats; :func:`convert_sensor_file` (``larc points``) turns them into such clouds and states what
-each converted obstacle assumes.
+A scene's ``type: points`` entry reads an (N, 3) ``.npy`` array, a ``.ply`` cloud or a PCL ``.pcd``
+file, with one ``radius`` per cloud (:mod:`larc_jax.model.point_sets`). Mapping stacks write other
+formats, and a cloud may be too large for a scene; :func:`convert_sensor_file` (``larc points``)
+turns them into such clouds (optionally reduced on a voxel grid) and states what each converted
+obstacle assumes.
 
 * **PCL ``.pcd``** (ascii, binary and binary_compressed; read by pypcd4, a maintained reader:
   ``pip install 'larc_jax[clouds]'``): the ``x, y, z`` fields of every point, as float64. A point
@@ -43,13 +44,13 @@ import numpy as np
 
 from ..errors import LarcInputError
 from ..io import short_repr
-from .point_sets import MAX_POINTS
+from .point_sets import MAX_POINTS, read_pcd_points
 
 __all__ = ["SensorCloud", "read_pcd", "read_plain", "read_octomap", "unknown_voxels", "check_voxel", "voxel_reduce", "radius_up", "convert_sensor_file",
            "POINT_SUFFIXES", "OCTOMAP_SUFFIXES"]
 
 POINT_SUFFIXES = (".pcd",)
-"""Point-cloud files :func:`convert_sensor_file` reads (scenes read ``.npy`` and ``.ply`` themselves)."""
+"""Point-cloud files :func:`convert_sensor_file` reads besides ``.npy`` and ``.ply`` (a scene reads all three)."""
 OCTOMAP_SUFFIXES = (".bt", ".ot")
 """OctoMap files :func:`convert_sensor_file` reads: binary (``.bt``) and full (``.ot``) trees."""
 
@@ -87,23 +88,13 @@ def _need(module: str, package: str, path: Path):
 
 
 def read_pcd(path: str | Path) -> SensorCloud:
-    """The finite ``x, y, z`` points of a PCL ``.pcd`` file (radius 0); :class:`LarcInputError`
-    naming the file for an unreadable one, one without x, y, z, or one with no finite point."""
+    """The finite ``x, y, z`` points of a PCL ``.pcd`` file (radius 0), read as a scene reads one
+    (:func:`~larc_jax.model.point_sets.read_pcd_points`); :class:`LarcInputError` naming the file
+    for an unreadable one, one without x, y, z, or one with no finite point."""
     path = Path(path)
-    pypcd4 = _need("pypcd4", "pypcd4", path)
-    try:
-        cloud = pypcd4.PointCloud.from_path(path)
-        fields = tuple(cloud.fields)
-    except FileNotFoundError:
-        raise LarcInputError(f"{path}: no such file") from None
-    except Exception as exc:  # noqa: BLE001 - pypcd4 raises many kinds for a bad file
-        raise LarcInputError(f"{path}: not a readable .pcd file ({type(exc).__name__}: "
-                             f"{' '.join(str(exc).split())[:200]})") from None
-    missing = [f for f in ("x", "y", "z") if f not in fields]
-    if missing:
-        raise LarcInputError(f"{path}: the .pcd file has no field {', '.join(missing)} (fields: {', '.join(fields)})")
-    P = np.asarray(cloud.numpy(("x", "y", "z")), np.float64).reshape(-1, 3)
-    vp = np.asarray(cloud.metadata.viewpoint, np.float64)
+    if not path.is_file():
+        raise LarcInputError(f"{path}: no such file")
+    P, vp = read_pcd_points(path.read_bytes(), str(path))
     notes = ()
     if vp.shape == (7,) and not np.array_equal(vp, [0, 0, 0, 1, 0, 0, 0]):
         notes = (f"its VIEWPOINT (sensor pose tx ty tz qw qx qy qz = {' '.join(f'{v:g}' for v in vp)}) is not "
