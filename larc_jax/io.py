@@ -29,7 +29,7 @@ from .plain_yaml import plain_documents
 
 __all__ = [
     "atomic_write_text", "atomic_write_bytes", "atomic_write_json",
-    "read_input_bytes", "read_input_text", "check_keys", "parse_yaml_documents", "parse_yaml", "parse_json", "short_repr",
+    "read_input_bytes", "read_input_text", "decode_text", "check_keys", "parse_yaml_documents", "parse_yaml", "parse_json", "short_repr",
     "deferred_log", "parse_number", "parse_vector", "real_array", "MAX_INPUT_BYTES", "MAX_NESTING",
     "file_sha256", "current_sha256", "UNSETTLED_NS",
 ]
@@ -147,7 +147,12 @@ def read_input_text(path: str | os.PathLike, what: str = "file") -> str:
     UTF-8 byte-order mark is dropped. ``what`` names the file's role in the messages ("scene
     file", "robot file", ...).
     """
-    data = read_input_bytes(path, what)
+    return decode_text(read_input_bytes(path, what), path)
+
+
+def decode_text(data: bytes, path: str | os.PathLike) -> str:
+    """``data`` (the bytes of ``path``, read once: a reader that also hashes them hashes what it
+    parsed) as UTF-8 text, a byte-order mark dropped; :class:`LarcInputError` if it is not."""
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

@@ -135,7 +135,7 @@ def test_scene_multi_shape_object_and_empty_scene(tmp_path):
     assert empty.n_boxes == 0
 
 
-@pytest.mark.parametrize("shape,dims", [("plane", "0 0 1 0"), ("octree", "1")])
+@pytest.mark.parametrize("shape,dims", [("octree", "1"), ("torus", "1 1")])
 def test_scene_unsupported_shape_refused(tmp_path, shape, dims):
     text = f"s\n* ball\n0 0 0\n0 0 0 1\n1\n{shape}\n{dims}\n0 0 0\n0 0 0 1\n0 0 0 0\n0\n.\n"
     path = _write(tmp_path, "ball.scene", text)
@@ -454,16 +454,18 @@ def test_cli_formats_and_exit_codes(tmp_path, capsys):
     assert "positions_only.csv" in err and "--velocities finite-difference" in err
     assert main(["-q", "certify", ex["positions_only.csv"], "--scene", ex["pick.scene"],
                  "--velocities", "finite-difference"]) == 0
-    # a box on the path: uncertified; the same pillar as a cylinder too; a plane: bad input
-    # naming file and line
+    # a box on the path: uncertified; the same pillar as a cylinder too, and a plane through it;
+    # a plane without a normal: bad input naming file and line
     blocked = "s\n* pillar\n0.3 0 0.25\n0 0 0 1\n1\nbox\n0.1 0.1 0.5\n0 0 0\n0 0 0 1\n0 0 0 0\n0\n.\n"
     assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "p.scene", blocked))]) == 1
     cylinder = blocked.replace("box\n0.1 0.1 0.5", "cylinder\n0.05 0.5")
     assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "c.scene", cylinder))]) == 1
     capsys.readouterr()
-    plane = blocked.replace("box\n0.1 0.1 0.5", "plane\n0 0 1 0")
+    plane = blocked.replace("box\n0.1 0.1 0.5", "plane\n0 0 1 0")  # z = 0.25: through the arm
+    assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "a.scene", plane))]) == 1
+    plane = blocked.replace("box\n0.1 0.1 0.5", "plane\n0 0 0 1")
     assert main(["-q", "certify", ex["traj.csv"], "--scene", str(_write(tmp_path, "b.scene", plane))]) == 2
-    assert "b.scene:6:" in capsys.readouterr().err
+    assert "b.scene:7:" in (err := capsys.readouterr().err) and "no normal" in err
 
 
 def test_readme_scene_example_parses(tmp_path):
@@ -474,6 +476,7 @@ def test_readme_scene_example_parses(tmp_path):
     (block,) = re.findall(r"```text\n(.*?)```", section.split("\n## ", 1)[0], re.S)
     scene = read_scene(_write(tmp_path, "readme.scene", block))
     ref = read_scene(EXAMPLES / "pick.scene")
-    assert scene.box_names == ("crate",)
+    assert scene.box_names == ("crate", "floor") and [p.name for p in scene.planes] == ["floor"]
+    np.testing.assert_allclose(scene.lo[1], [-5, -5, -0.05], rtol=0, atol=1e-12)  # the floor 5 cm down: its square
     np.testing.assert_array_equal(scene.lo[0], ref.lo[0])
     np.testing.assert_array_equal(scene.hi[0], ref.hi[0])

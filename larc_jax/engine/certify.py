@@ -42,6 +42,7 @@ from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
 from ..leaf.interval import geometry_dtype, trajectory_roundings
 from ..obstacles import scene_obstacles
 from .results import DatasetResult, LeafTable
+from ..model.planes import check_plane_reach
 from ..model.robot import Robot
 from ..run_spec import RunSpec
 from ..model.scene import Scene
@@ -403,6 +404,7 @@ def certify(
     if check_pairs is not None:  # pairs proven apart where each trajectory's curve goes
         skips = [check_pairs.skip_mask(*curve_ranges(t, delta)) for t in trajectories]
     enc = leaf_enclosures(robot, capsules, enclosure, delta, hulls, spec.swept)  # radii grown by sum_j a_lj delta_j
+    check_plane_reach(scenes, robot, enc.capsules)  # a plane is its square only where the robot cannot go
     planned_capsules, capsules, hulls = capsules, enc.capsules, enc.hulls
     start = time.perf_counter()
     names = _Names(scenes)

@@ -116,7 +116,7 @@ from ..model.hermite import HermiteSpline
 from ..lazy_jax import jax, jnp, pytree_dataclass
 from ..obstacles import scene_obstacles
 from .placement import Placement, motion_radii, place, place_np
-from ..model.robot import JointType, Robot
+from ..model.robot import Robot, chain_terms
 
 __all__ = [
     "IntervalEval",
@@ -242,33 +242,10 @@ class RoundingBounds:
     formula with the part's chain, vertices and motion constants), m; (0,) without hulls."""
 
 
-def _chain_terms(robot: Robot, link_index, end_norms):
-    """Per enclosure (on link ``link_index[e]``, farthest point ``end_norms[e]`` from its link origin):
-    chain length L, fixed part of R (m), and the active prismatic joints whose travel adds to it (G1)."""
-    T_pj = np.asarray(robot.T_parent_joint, np.float64)
-    held = np.asarray(robot.q_held, np.float64)
-    offset = [float(np.linalg.norm(T[:3, 3])) for T in T_pj]  # each joint's once: the same bits as per chain
-    lengths, fixed, prismatic = [], [], []
-    for e, li in enumerate(link_index):
-        chain = robot.ancestors(li)[1:]
-        r = float(end_norms[e]) + sum(offset[i] for i in chain)
-        active = []
-        for i in chain:
-            if robot.joint_type[i] == JointType.PRISMATIC:
-                if robot.q_index[i] >= 0:
-                    active.append(robot.q_index[i])
-                else:
-                    r += abs(float(held[i]))
-        lengths.append(len(chain))
-        fixed.append(r)
-        prismatic.append(active)
-    return np.array(lengths, np.float64), np.array(fixed), prismatic
-
-
 def _guard_terms(robot: Robot, link_index, end_norms, motion_a):
     """What ``G_e`` needs of the model (the same for every trajectory): ``(a, lengths, fixed,
-    prismatic)``, :func:`_chain_terms` with the motion constants."""
-    return (np.asarray(motion_a, np.float64).reshape(len(link_index), -1),) + _chain_terms(robot, link_index, end_norms)
+    prismatic)``, `chain_terms` (:mod:`larc_jax.model.robot`) with the motion constants."""
+    return (np.asarray(motion_a, np.float64).reshape(len(link_index), -1),) + chain_terms(robot, link_index, end_norms)
 
 
 def _guards(terms, E, Q, ug: float) -> np.ndarray:

@@ -34,6 +34,7 @@ __all__ = [
     "forward_kinematics",
     "forward_kinematics_np",
     "CONTINUOUS_LIMIT_RAD",
+    "chain_terms",
 ]
 
 CONTINUOUS_LIMIT_RAD = 4.0 * np.pi
@@ -118,6 +119,36 @@ class Robot:
             chain.append(link)
             link = self.parent[link]
         return chain[::-1]
+
+
+def chain_terms(robot: Robot, link_index, end_norms):
+    """Per enclosure (on link ``link_index[e]``, farthest point ``end_norms[e]`` from its link origin):
+    the chain length (joints from the root), the fixed part of its reach (m) and the active
+    prismatic joints (indices into ``q``) whose travel adds to it.
+
+    A point of the enclosure is ``T_1 M_1(q_1) ... T_k M_k(q_k) x`` with ``|x| <= end_norms[e]``:
+    rotations keep norms, so its distance from the root origin is at most ``|x|`` plus each joint
+    origin's offset ``|t_i|``, each held prismatic joint's ``|q_i|`` and each active prismatic
+    joint's ``|q_j|`` (the last left to the caller: the rounding guard's G1 of
+    :mod:`larc_jax.leaf.interval` takes a trajectory's curve bound, a plane's reach check the limits)."""
+    T_pj = np.asarray(robot.T_parent_joint, np.float64)
+    held = np.asarray(robot.q_held, np.float64)
+    offset = [float(np.linalg.norm(T[:3, 3])) for T in T_pj]  # each joint's once: the same bits as per chain
+    lengths, fixed, prismatic = [], [], []
+    for e, li in enumerate(link_index):
+        chain = robot.ancestors(li)[1:]
+        r = float(end_norms[e]) + sum(offset[i] for i in chain)
+        active = []
+        for i in chain:
+            if robot.joint_type[i] == JointType.PRISMATIC:
+                if robot.q_index[i] >= 0:
+                    active.append(robot.q_index[i])
+                else:
+                    r += abs(float(held[i]))
+        lengths.append(len(chain))
+        fixed.append(r)
+        prismatic.append(active)
+    return np.array(lengths, np.float64), np.array(fixed), prismatic
 
 
 # ----------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ Scene YAML::
       - {name: ball, type: sphere, radius: r, pose: {position: [x, y, z]}}
       - {name: post, type: cylinder, radius: r, length: l, pose: ...}   # axis along the pose's z
       - {name: cone, type: cone, radius: r, length: l, pose: ...}
+      - {name: floor, type: plane, normal: [a, b, c], offset: d, pose: ...}   # a x + b y + c z + d = 0
 
 A scene needs ``boxes`` or ``obstacles`` (or both; ``[]`` for none). Any other field, in the
 scene or in an entry, is an error naming it (a typo such as ``obstacle:`` or ``box:`` must not
@@ -45,13 +46,17 @@ posed shape with its rotation kept (:class:`~larc_jax.model.shapes.Shapes`). A m
 ``shapes::saveAsText`` writes it) becomes a mesh obstacle placed by the composed pose, exactly as
 a YAML ``type: mesh`` entry of the same triangles (:mod:`larc_jax.model.point_sets`: a convex
 watertight mesh is a solid, any other its surface; its file is the ``.scene`` file). A plane
-(``plane a b c d``, infinite) is refused: nothing finite holds it; give the part of it the arm can
-reach as a thin box. MoveIt does not write octrees to ``.scene`` files; the word is refused too.
+(``plane``, then ``a b c d``: the infinite plane ``a x + b y + c z + d = 0`` of the shape's frame) is
+held as its square of half-side 5 m about the base origin, a box of rounding thickness, which holds
+the plane wherever the robot can be: ``certify`` and ``larc verify`` check the robot's reach
+(:mod:`larc_jax.model.planes`), and certificates state it (``scenes[].assumes``). MoveIt does not
+write octrees to ``.scene`` files; the word is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import math
 import re
@@ -62,8 +67,9 @@ import numpy as np
 import yaml
 
 from ..errors import LarcInputError
-from ..io import (check_keys, deferred_log, file_sha256, parse_vector, parse_yaml, read_input_text, real_array,
-                  short_repr)
+from ..io import (check_keys, decode_text, deferred_log, parse_vector, parse_yaml, read_input_bytes, read_input_text,
+                  real_array, short_repr)
+from .planes import Plane, plane_from_coefficients
 from .point_sets import MAX_POINTS, PointSets, mesh_from_arrays, posed_mesh_pieces
 from .shapes import QUATERNION_NORM_TOLERANCE, Shapes, rotation_from_quaternion, shapes_from_entries
 
@@ -96,6 +102,8 @@ class Scene:
     """Posed shapes (oriented boxes, spheres, cylinders, cones); none by default."""
     point_sets: PointSets = dataclasses.field(default_factory=PointSets)
     """Meshes and point clouds, as convex pieces; none by default."""
+    planes: tuple[Plane, ...] = ()
+    """Planes (:mod:`larc_jax.model.planes`), each held as the box or shape of its name."""
 
     def __post_init__(self):
         for field in ("name", "frame", "source"):
@@ -124,6 +132,18 @@ class Scene:
             raise LarcInputError(f"{src}: Scene.point_sets must be a PointSets record, got {short_repr(self.point_sets)}")
         for field, value in (("lo", lo), ("hi", hi), ("box_names", tuple(names) or tuple(f"box{k}" for k in range(len(lo))))):
             object.__setattr__(self, field, value)
+        if not isinstance(self.planes, (list, tuple)) or not all(isinstance(p, Plane) for p in self.planes):
+            raise LarcInputError(f"{src}: Scene.planes must be a list of Plane records, got {short_repr(self.planes)}")
+        held = tuple(self.box_names) + self.shapes.names
+        for p in self.planes:
+            if p.name not in held:
+                raise LarcInputError(f"{src}: plane '{p.name}' has no box or shape of its name (its square)")
+        object.__setattr__(self, "planes", tuple(self.planes))
+
+    def assumptions(self) -> tuple[str, ...]:
+        """What a certificate over this scene assumes of its meshes, clouds and planes, in words
+        (certificates state them; ``larc verify`` checks them against the files)."""
+        return self.point_sets.assumptions() + tuple(p.assumption() for p in self.planes)
 
     @property
     def n_boxes(self) -> int:
@@ -183,7 +203,7 @@ def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str 
             f"{source}: missing field 'boxes' or 'obstacles' (found fields {short_repr(sorted(map(str, doc)))}); "
             f"write 'boxes: []' for a scene without obstacles")
     base = Path(source).parent if source and not source.startswith("<") else Path(".")
-    shapes, point_sets = shapes_from_entries(doc.get("obstacles"), source, base)
+    shapes, point_sets, planes = shapes_from_entries(doc.get("obstacles"), source, base)
     boxes = doc.get("boxes")
     if boxes is None:
         boxes = []
@@ -214,7 +234,7 @@ def scene_from_dict(doc, *, source: str = "<scene>", name: str = "", frame: str 
     return Scene(
         lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
         name=name or str(doc.get("name", "")), frame=scene_frame, source=source, shapes=shapes,
-        point_sets=point_sets,
+        point_sets=point_sets, planes=planes,
     )
 
 
@@ -291,7 +311,7 @@ class _Tokens:
         return p, rotation_from_quaternion(q / norm)
 
 
-_REFUSED_SHAPES = ("plane", "octree")
+_REFUSED_SHAPES = ("octree",)
 _SHAPE_NUMBERS = {"box": 3, "sphere": 1, "cylinder": 2, "cone": 2}
 """Dimensions MoveIt writes per shape: box sx sy sz; sphere r; cylinder and cone r l."""
 
@@ -305,7 +325,8 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
     """
     path = Path(path)
     source = str(path)
-    text = read_input_text(path, "scene file")  # missing, directory, permissions, binary
+    data = read_input_bytes(path, "scene file")  # missing, directory, permissions; read once, hashed below
+    text = decode_text(data, path)  # binary
     lines = text.splitlines()
     if not text.strip():
         raise LarcInputError(f"{path}: scene file is empty")
@@ -320,6 +341,7 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
     lo, hi, names = [], [], []
     shape_rows: list = []  # (kind, name, dims, p_world_shape, R_world_shape)
     mesh_rows: list = []  # (name, pieces, solid)
+    planes: list[Plane] = []
     seen: set[str] = set()
     while True:
         marker, line, rest = toks.next("'* object name' or the end line '.'")
@@ -345,11 +367,21 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
             if shape == "mesh":
                 mesh_rows.append((shape_name, *_moveit_mesh(toks, obj, k, sline, p_obj, r_obj)))
                 continue
+            if shape == "plane":  # its square (larc_jax.model.planes): axis-aligned if its normal is +-z exactly
+                plane = _moveit_plane(toks, obj, k, shape_name, p_obj, r_obj)
+                planes.append(plane)
+                centre, R_sq = np.asarray(plane.centre_world), np.asarray(plane.R_world_square)
+                if bool((R_sq == np.eye(3)).all()):
+                    half = plane.size_m / 2
+                    lo.append(centre - half), hi.append(centre + half), names.append(shape_name)
+                else:
+                    shape_rows.append(("box", shape_name, plane.size_m, centre, R_sq))
+                continue
             if shape not in _SHAPE_NUMBERS:
                 kind = shape if shape in _REFUSED_SHAPES else f"unknown shape type '{shape}'"
                 raise toks.error(
-                    sline, f"object '{obj}' shape {k} is a {kind}: only boxes, spheres, cylinders, cones and "
-                    f"meshes are supported (replace it by one that encloses it)")
+                    sline, f"object '{obj}' shape {k} is a {kind}: only boxes, spheres, cylinders, cones, meshes and "
+                    f"planes are supported (replace it by one that encloses it)")
             numbers = np.empty(_SHAPE_NUMBERS[shape])
             for i in range(len(numbers)):
                 numbers[i], dline = toks.number(f"object '{obj}' {shape} size")
@@ -379,7 +411,7 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
                     dims=np.array([r[2] for r in shape_rows]).reshape(-1, 3),
                     p_world_shape=np.array([r[3] for r in shape_rows]).reshape(-1, 3),
                     R_world_shape=np.array([r[4] for r in shape_rows]).reshape(-1, 3, 3))
-    sha = file_sha256(path, "scene file") if mesh_rows else ""
+    sha = hashlib.sha256(data).hexdigest() if mesh_rows else ""  # the bytes parsed
     point_sets = PointSets(kinds=("mesh",) * len(mesh_rows), names=tuple(r[0] for r in mesh_rows),
                            files=(source,) * len(mesh_rows), file_sha256=(sha,) * len(mesh_rows),
                            radius=(0.0,) * len(mesh_rows), pieces=tuple(x for r in mesh_rows for x in r[1]),
@@ -388,7 +420,19 @@ def read_moveit_scene(path: str | Path, *, frame: str | None = None) -> Scene:
     return Scene(
         lo=np.array(lo).reshape(-1, 3), hi=np.array(hi).reshape(-1, 3), box_names=tuple(names),
         name=path.stem, frame=frame or "", source=source, shapes=shapes, point_sets=point_sets,
+        planes=tuple(planes),
     )
+
+
+def _moveit_plane(toks: _Tokens, obj: str, k: int, name: str, p_obj, r_obj) -> Plane:
+    """A ``.scene`` plane after its ``plane`` word: ``a b c d``, the shape pose, the colour."""
+    what = f"object '{obj}' shape {k} (plane)"
+    coefficients = [toks.number(f"{what} coefficients") for _ in range(4)]
+    p_shape, r_shape = toks.pose(f"{what} pose")
+    for _ in range(4):
+        toks.number(f"{what} colour")
+    return plane_from_coefficients(name, [c for c, _ in coefficients], p_obj + r_obj @ p_shape, r_obj @ r_shape,
+                                   f"{toks.source}:{coefficients[0][1]}: {what}")
 
 
 def _moveit_mesh(toks: _Tokens, obj: str, k: int, line: int, p_obj, r_obj):

@@ -130,13 +130,17 @@ _ENTRY_KEYS = {"box": ("name", "type", "size", "pose"), "sphere": ("name", "type
                "cylinder": ("name", "type", "radius", "length", "pose"),
                "cone": ("name", "type", "radius", "length", "pose")}
 _POINT_SET_KEYS = {"mesh": ("name", "type", "file", "scale", "pose"), "points": ("name", "type", "file", "radius", "pose")}
-_ALL_KINDS = SHAPE_KINDS + tuple(_POINT_SET_KEYS)
+_PLANE_KEYS = ("name", "type", "normal", "offset", "pose")
+_ALL_KINDS = SHAPE_KINDS + tuple(_POINT_SET_KEYS) + ("plane",)
 
 
 def shapes_from_entries(entries, source: str, base: Path | None = None):
     """The ``obstacles:`` list of a scene YAML (:mod:`larc_jax.model.scene`): its shapes as
-    :class:`Shapes` and its meshes and point clouds as :class:`~larc_jax.model.point_sets.PointSets`
-    (files relative to ``base``, default the current folder); every error names the file and the entry."""
+    :class:`Shapes`, its meshes and point clouds as :class:`~larc_jax.model.point_sets.PointSets`
+    (files relative to ``base``, default the current folder) and its planes
+    (:class:`~larc_jax.model.planes.Plane`, each also a shape: its square); every error names the
+    file and the entry."""
+    from .planes import plane_from_coefficients
     from .point_sets import PointSets, point_set_entry
 
     base = Path(".") if base is None else base
@@ -144,7 +148,7 @@ def shapes_from_entries(entries, source: str, base: Path | None = None):
         entries = []
     if not isinstance(entries, list):
         raise LarcInputError(f"{source}: obstacles must be a list, got {short_repr(entries)}")
-    kinds, names, dims, positions, rotations = [], [], [], [], []
+    kinds, names, dims, positions, rotations, planes = [], [], [], [], [], []
     sets: dict = {"kinds": [], "names": [], "files": [], "file_sha256": [], "radius": [], "pieces": [], "owner": [],
                   "solid": []}
     for k, entry in enumerate(entries):
@@ -157,6 +161,18 @@ def shapes_from_entries(entries, source: str, base: Path | None = None):
         name = entry.get("name", f"{kind}{k}")
         if isinstance(name, bool) or not isinstance(name, (str, int, float)):
             raise LarcInputError(f"{source}: {where}.name must be a string, got {short_repr(name)}")
+        if kind == "plane":  # normal . x + offset = 0 in the pose's frame (MoveIt's a b c d)
+            check_keys(entry, _PLANE_KEYS, source, where)
+            if "normal" not in entry or "offset" not in entry:
+                raise LarcInputError(f"{source}: {where}: a plane needs normal and offset (normal . x + offset = 0)")
+            abc = parse_vector(entry["normal"], 3, source, f"{where}.normal", finite=True)
+            d = parse_number(entry["offset"], source, f"{where}.offset", finite=True)
+            p, R = pose_from_entry(entry.get("pose"), source, f"{where}.pose")
+            plane = plane_from_coefficients(str(name), [*abc, d], p, R, f"{source}: {where}")
+            planes.append(plane)
+            kinds.append("box"), names.append(plane.name), dims.append(plane.size_m)
+            positions.append(np.asarray(plane.centre_world)), rotations.append(np.asarray(plane.R_world_square))
+            continue
         if kind in _POINT_SET_KEYS:
             check_keys(entry, _POINT_SET_KEYS[kind], source, where)
             p, R = pose_from_entry(entry.get("pose"), source, f"{where}.pose")
@@ -190,7 +206,7 @@ def shapes_from_entries(entries, source: str, base: Path | None = None):
         kinds.append(kind), names.append(str(name)), dims.append(d), positions.append(p), rotations.append(R)
     shapes = Shapes(kinds=tuple(kinds), names=tuple(names), dims=np.array(dims).reshape(-1, 3),
                     p_world_shape=np.array(positions).reshape(-1, 3), R_world_shape=np.array(rotations).reshape(-1, 3, 3))
-    return shapes, PointSets(**{key: tuple(value) for key, value in sets.items()})
+    return shapes, PointSets(**{key: tuple(value) for key, value in sets.items()}), tuple(planes)
 
 
 def pose_from_entry(pose, source: str, where: str):

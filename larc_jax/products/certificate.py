@@ -251,7 +251,7 @@ def certificate(result: DatasetResult, trajectories, scenes, robot: Robot, capsu
     scene_docs = [{"file": None if f is None else str(f), "sha256": None if f is None else file_sha256(f),
                    "arrays_sha256": scene_sha256(first[u]), "name": first[u].name,
                    "boxes": list(first[u].obstacle_names),
-                   "assumes": list(first[u].point_sets.assumptions())} for u, f in zip(unique, files)]
+                   "assumes": list(first[u].assumptions())} for u, f in zip(unique, files)]
     tfiles = list(trajectory_files) if trajectory_files is not None else [None] * len(trajectories)
     if len(tfiles) != len(trajectories):
         raise LarcInputError(f"certificate: {len(trajectories)} trajectories but {len(tfiles)} trajectory files")

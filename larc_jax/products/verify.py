@@ -17,7 +17,8 @@ call):
    certificate's padding and tracking tolerance, must hash to its ``robot.enclosures_sha256``
    (:func:`~larc_jax.products.certificate.enclosures_sha256`): the certificate names what it was
    made with, and a checker that would rebuild other enclosures refutes it rather than re-check
-   another claim.
+   another claim. A scene's planes must be the planes themselves wherever the capsules reach
+   (:func:`~larc_jax.model.planes.check_plane_reach`).
 2. Tiling: the leaves of every trajectory claimed certified are in time order, each the dyadic
    piece ``(depth, index)`` of the horizon (:func:`~larc_jax.leaf.interval.dyadic_ends`, exact), the
    first starts at ``t_0``, each ends where the next starts, the last ends at ``t_K``.
@@ -46,10 +47,8 @@ version 4), read with :meth:`~larc_jax.run_spec.RunSpec.from_dict` (:meth:`~larc
 rules: every field present, known and valid, else one line naming it); its model fields must be
 the robot loaded (stated joints, active joints); the robot file's capsules take the spec's
 ``padding_m`` (:meth:`~larc_jax.enclosure.capsule.CapsuleModel.with_padding`) before anything is
-proven or re-checked. A version-2 certificate (parameters of its own, written before the run spec)
-or version-3 one (no padding: the robot file's was used) is refused with a message to re-certify:
-reading it would keep a second parser of parameters alive, and re-certifying costs one ``larc
-certify`` run.
+proven or re-checked. A version-2 or -3 certificate (parameters of its own; no padding) is refused
+with a message to re-certify: re-certifying costs one run, a second parser of parameters more.
 
 What was checked is reported (:class:`~larc_jax.products.verify_report.VerifyReport`, also carried by a
 :class:`Refuted` up to the refutation): every file read with the SHA-256 of its bytes and whether
@@ -75,8 +74,7 @@ how many recorded velocities were ignored. A file without velocities has only th
 finite-difference reading: it is accepted, its mode printed (pin ``velocities="recorded"`` to
 refuse it).
 
-This module defers JAX (:func:`larc_jax.lazy_jax.defer_jax`) before importing the library, so a
-process that imports it (``larc verify``) never loads JAX; ``tests/test_certificate.py`` checks.
+It defers JAX (:func:`larc_jax.lazy_jax.defer_jax`): ``larc verify`` never loads it (``tests/test_certificate.py``).
 """
 
 from __future__ import annotations
@@ -106,6 +104,7 @@ from ..io import parse_json, read_input_bytes, read_input_text, short_repr  # no
 from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np  # noqa: E402
 from ..model.robot import JointType  # noqa: E402
 from ..run_spec import RunSpec  # noqa: E402
+from ..model.planes import check_plane_reach  # noqa: E402
 from ..model.scene import read_scene  # noqa: E402
 from ..leaf.self_collision import curve_ranges, load_separation, self_pairs  # noqa: E402
 from ..enclosure.tracking import check_tracking_tolerance  # noqa: E402
@@ -227,8 +226,8 @@ def _load_scenes(docs: list, files: list, robot, pins: VerifyPins, facts: list) 
         scene = read_scene(path, frame=robot.link_names[0])
         arrays = _get(doc, "arrays_sha256", where, str)
         _check_hash(scene_sha256(scene), arrays, f"scene {path} (its obstacles)")
-        assumes = scene.point_sets.assumptions()
-        if doc.get("assumes", []) != list(assumes):  # what it states of its meshes and clouds is the files' truth
+        assumes = scene.assumptions()
+        if doc.get("assumes", []) != list(assumes):  # what it states of its meshes, clouds, planes: the files' truth
             raise Refuted(f"{where}.assumes {short_repr(doc.get('assumes'))} is not what scene {path} gives: "
                           f"{list(assumes)}")
         scenes.append(scene)
@@ -476,6 +475,7 @@ def _verify(path, trajectories, scenes, robot, pins: VerifyPins, est: dict) -> V
     scene_docs = _get(doc, "scenes", source, list)
     loaded_scenes = _load_scenes(scene_docs, _override(scenes, len(scene_docs), "--scene"), rob, pins,
                                  est["scene_files"])
+    check_plane_reach(loaded_scenes, rob, enc.capsules, Refuted)  # certify refuses a plane the robot reaches past
     files = _override(trajectories, len(traj_docs), "--trajectory")
     checked = n_leaves = 0
     diff, excess = 0.0, math.inf

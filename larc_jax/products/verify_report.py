@@ -63,7 +63,7 @@ class SceneFacts:
     """Names of the obstacles read, boxes then posed shapes (none: the certificate claims nothing
     about obstacles)."""
     assumes: tuple[str, ...] = ()
-    """What the claim assumes of each mesh and cloud (:meth:`~larc_jax.model.point_sets.PointSets.assumptions`)."""
+    """What the claim assumes of each mesh, cloud and plane (:meth:`~larc_jax.model.scene.Scene.assumptions`)."""
 
 
 @dataclasses.dataclass(frozen=True)
