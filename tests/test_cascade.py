@@ -137,6 +137,18 @@ def dataset(model):
     return near_miss_dataset(*model, 20, 0.5, 12)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def host_frontier():
+    """This module tests the cascade as the host frontier and fixed-fine run it (steps 2-5 of
+    :mod:`larc_jax.engine.batch`), so ``certify``'s LARC runs its 20 trajectories there, not on the
+    device tree (whose hull stage ``tests/test_tree_hull.py`` compares with these steps)."""
+    import larc_jax.engine.tree_pool as pool_module
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(pool_module, "TREE_FROM_TRAJECTORIES", 10**9)
+        yield
+
+
 @pytest.fixture(scope="module")
 def larc(dataset, model):
     robot, capsules, _ = model

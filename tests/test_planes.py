@@ -129,6 +129,9 @@ def test_the_square_is_the_plane_within_the_reach():
         assert (_box_distance(far, c, R, plane.size_m / 2) >= far_true - 2 * plane.half_thickness_m - 1e-13).all()
 
 
+_MODELS: dict = {}
+
+
 def _truth(robot, traj, n, offset, margin, samples=300):
     """The robot's collision meshes along the curve against the plane ``n . x + offset = 0``:
     (does FCL find any link touching the plane moved by the margin to either side, the least
@@ -139,7 +142,9 @@ def _truth(robot, traj, n, offset, margin, samples=300):
     from experiments.collision import CollisionModel
     from larc_jax.model.hermite_reference import evaluate_np
 
-    model = CollisionModel(robot)
+    if id(robot) not in _MODELS:  # the meshes loaded once per robot (the robot kept: its id stays its own)
+        _MODELS[id(robot)] = (robot, CollisionModel(robot))
+    model = _MODELS[id(robot)][1]
     n = np.asarray(n, np.float64)
     shifted = [fcl.CollisionObject(fcl.Plane(n, -float(offset) + s), fcl.Transform()) for s in (-margin, margin)]
     touched, least = False, math.inf

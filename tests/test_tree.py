@@ -81,6 +81,32 @@ def test_tree_matches_host_frontier_on_random_set(robot, capsules, random_set):
     assert tree.steps == _steps(len(trajs), tree) and tree.hull_steps == 0  # no hull queue without the cascade
 
 
+def test_tree_pool_deals_trajectories_to_threads(robot, capsules, random_set, monkeypatch):
+    """Dealt round-robin to three threads, the tree gives what one thread gives, bit for bit (the
+    same program on the same batch); its progress counts every evaluation; and ``certify``'s
+    LARC runs it from :data:`TREE_FROM_TRAJECTORIES` trajectories (its leaves are the pool's)."""
+    import larc_jax
+    import larc_jax.engine.tree_pool as pool_module
+    from larc_jax.engine.tree_pool import run_tree_pool, tree_workers, uses_tree
+
+    trajs, scenes = random_set
+    batch, names = _batch(robot, capsules, trajs, scenes)
+    one = run_tree(batch, len(trajs), MAX_DEPTH)
+    told, compiled = [], []
+    pool = run_tree_pool(batch, len(trajs), MAX_DEPTH, compiled.append, told.append, workers=3)
+    for field in ("traj", "depth", "index", "t0", "t1", "frontier"):
+        assert np.array_equal(getattr(pool, field), getattr(one, field)), field
+    for a, b in zip(pool.record, one.record):
+        assert np.array_equal(a, b, equal_nan=np.asarray(a).dtype.kind == "f")
+    assert pool.calls >= 3 and sum(told) == one.frontier.sum() and compiled in ([], [True, False])
+    assert 1 <= tree_workers(batch, 1) == 1 <= tree_workers(batch, len(trajs)) <= len(trajs)
+    assert not uses_tree(batch, len(trajs)) and uses_tree(batch, pool_module.TREE_FROM_TRAJECTORIES)
+    monkeypatch.setattr(pool_module, "TREE_FROM_TRAJECTORIES", len(trajs))
+    result = larc_jax.certify(trajs, scenes, robot, capsules, enclosure="capsules")
+    assert np.array_equal(result.leaves.clearance_m, one.record.clearance_m, equal_nan=True)
+    assert np.array_equal(result.frontier, one.frontier) and np.array_equal(result.leaves.t0, one.t0)
+
+
 def _steps(n_traj: int, tree, wide: int = WIDE_STEP, narrow: int = NARROW_STEP,
            levels: int = SPECULATION_LEVELS) -> int:
     """The steps one call of the tree takes, replayed on the host from its leaves (an evaluated

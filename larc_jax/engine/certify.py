@@ -16,6 +16,11 @@ passes iff its recorded clearance exceeds its recorded guard:
   call; passing intervals become certified leaves; inconclusive ones are bisected into the next
   frontier (or recorded as inconclusive leaves at ``max_depth``). Frontier arrays are padded to
   a few bucket sizes (:mod:`larc_jax.engine.batch`) so a whole dataset compiles a handful of shapes.
+  A batch of :data:`~larc_jax.engine.tree_pool.TREE_FROM_TRAJECTORIES` or more that the device
+  tree runs (:func:`~larc_jax.engine.tree_pool.uses_tree`) runs as one jitted program instead
+  (:mod:`larc_jax.engine.tree`): the same intervals, leaves and decisions; a leaf's clearance may
+  differ in its last bits (XLA compiles the kernel inside the loop with its own fusions), far
+  inside its guard.
 * ``fine`` / ``coarse`` — every one of the ``2**depth`` intervals (depth 9 / 4).
 """
 
@@ -42,6 +47,7 @@ from ..leaf.reference import LeafEnclosures, leaf_enclosures, leaf_test_np
 from ..leaf.interval import geometry_dtype, trajectory_roundings
 from ..obstacles import scene_obstacles
 from .results import DatasetResult, LeafTable
+from .tree_pool import run_tree_pool, uses_tree
 from ..model.planes import check_plane_reach
 from ..model.robot import Robot
 from ..run_spec import RunSpec
@@ -343,7 +349,9 @@ def certify(
         defaults those of :class:`RunSpec`) are a convenience that builds one; giving both is an error.
       trajectories: one or many (each may have its own waypoint count and duration).
       scenes: one scene for all, or one per trajectory.
-      method: ``larc`` (batched adaptive), ``fine`` (all ``2**max_depth`` intervals),
+      method: ``larc`` (batched adaptive: the device tree, :mod:`larc_jax.engine.tree_pool`, for a
+        batch it runs, else the frontier driven from the host; the same decisions), ``fine``
+        (all ``2**max_depth`` intervals),
         ``coarse`` (all ``2**coarse_depth``), ``reference`` (Algorithm 1 in NumPy).
       margin: clearance margin rho, m.
       dtype: geometry dtype, float64 (default) or float32: forward kinematics and distances in
@@ -424,7 +432,11 @@ def certify(
                 batch = prepare(trajectories[sl], scenes[sl], robot, capsules, margin, dtype, bounds[sl], devices,
                                 on_compile, hulls, self_pairs=check_pairs,
                                 self_skip=None if skips is None else skips[sl], swept=enc.swept)
-                if method == Method.LARC:
+                if method == Method.LARC and uses_tree(batch, n_part):  # the whole tree as one device program
+                    tree = run_tree_pool(batch, n_part, max_depth, on_compile, progress)
+                    f, lv = tree.frontier, _leaf_table(part, tree.traj, tree.depth, tree.index, tree.t0, tree.t1,
+                                                       tree.record)  # sorted by trajectory, then time
+                elif method == Method.LARC:  # what the tree does not run: the frontier driven from here
                     f, lv = _larc_batched(batch, n_part, part, max_depth, progress, on_compile)
                 else:
                     depth = max_depth if method == Method.FINE else spec.coarse_depth

@@ -52,8 +52,8 @@ are rounded as NumPy rounds them (:func:`dyadic_ends_jnp`).
 Scope: the capsule test or the cascade (the capsule test, the screen, then the hull stage on the
 lanes it leaves open, :mod:`larc_jax.engine.tree_hull`), with the self test or without, against
 whole scenes (no swept stage, no culling, no point-cloud pieces), on one device; :func:`supports`
-says when a batch qualifies. ``certify`` does not use it yet (README, "The depth loop on the
-device", has its timings against the host frontier).
+says when a batch qualifies. ``certify`` runs it, dealt to one thread per CPU core, on batches of
+:data:`~larc_jax.engine.tree_pool.TREE_FROM_TRAJECTORIES` or more (:mod:`larc_jax.engine.tree_pool`).
 """
 
 from __future__ import annotations
@@ -436,11 +436,16 @@ def _program(broad: bool, wide: int, narrow: int, hull: int, leaf_capacity: int)
 
 
 def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int = WIDE_STEP,
-             narrow: int = NARROW_STEP, hull: int | None = None, leaf_capacity: int = LEAF_CAPACITY) -> TreeLeaves:
+             narrow: int = NARROW_STEP, hull: int | None = None, leaf_capacity: int = LEAF_CAPACITY,
+             seeds=None, progress=None) -> TreeLeaves:
     """LARC on the first ``n_traj`` trajectories of ``batch`` (one :func:`supports`), from every
     trajectory's root down to ``max_depth``: the device program, called again with what is left
     while a call stops short. ``on_compile``: as :meth:`Batch.evaluate <larc_jax.engine.batch.Batch.evaluate>`.
-    ``hull``: a hull step's width (None: :data:`HULL_STEP` by the batch class)."""
+    ``hull``: a hull step's width (None: :data:`HULL_STEP` by the batch class). ``seeds``: the
+    trajectories (of the first ``n_traj``) whose roots seed the stack (None: all; empty: one call
+    that evaluates nothing, which compiles the program); the buffers are sized by ``n_traj``
+    whatever the seeds, so every subset runs the same program (:mod:`larc_jax.engine.tree_pool`).
+    ``progress``: called with the evaluations of each program call."""
     if not supports(batch):
         raise ValueError("run_tree: the device tree runs the capsule test or the cascade (and the self test) on whole "
                          f"scenes, on one device, without the swept stage or point-cloud pieces, at most {MAX_TRIPLES} "
@@ -455,7 +460,8 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     grow = max(wide, 2 * hull)
     capacity = size_class(n_traj, 1) + STACK_SLACK * grow * (DEFAULT_MAX_DEPTH + 1)
     leaf_capacity = min(leaf_capacity, (size_class(n_traj, 1) << DEFAULT_MAX_DEPTH) + wide)  # LEAF_CAPACITY
-    pending = [np.arange(n_traj, dtype=np.int32), np.zeros(n_traj, np.int32), np.zeros(n_traj, np.int64)]
+    roots = np.arange(n_traj, dtype=np.int32) if seeds is None else np.asarray(seeds, np.int32)
+    pending = [roots, np.zeros(len(roots), np.int32), np.zeros(len(roots), np.int64)]
     rows = size_class(len(batch.t_start), 1)  # per-trajectory arrays padded as the splines are (one shape per class)
     pad = lambda x: np.concatenate([x, np.repeat(x[:1], rows - len(x))])  # noqa: E731
     frontier = np.zeros((rows, MAX_DEPTH_LIMIT + 1), np.int64)
@@ -469,15 +475,17 @@ def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int =
     args = (batch.robot, batch.capsules, batch.splines, batch.obstacles, batch.bounds, pad(batch.scene_of),
             pad(batch.t_start), pad(batch.t_end), batch.margin, self_check, cascade)
     found, calls, steps = [], 0, np.zeros(3, np.int64)
-    while len(pending[0]):
+    while calls == 0 or len(pending[0]):
         take = min(len(pending[0]), capacity - grow)  # the top of the pending stack, deepest first
         stack = tuple(np.concatenate([p[len(p) - take:], np.zeros(capacity - take, p.dtype)]) for p in pending)
         pending = [p[: len(p) - take] for p in pending]
         with jax.enable_x64(True):
             out = tracked_call(program, (*args, stack, np.int32(take), frontier, np.int32(max_depth)), on_compile)
             stack, top, queue, n_queued, leaves, n_leaves = jax.tree.map(np.asarray, out[:6])
-            frontier = out[6]
+            before, frontier = frontier, out[6]
         calls, steps = calls + 1, steps + np.asarray(out[7])
+        if progress is not None:
+            progress(int(np.asarray(frontier).sum() - np.asarray(before).sum()))
         found.append([x[: int(n_leaves)] for x in leaves])
         # What a stopped call left: its stack, and the hull queue's intervals (evaluated again).
         left = [s[: int(top)] for s in stack] if not queue else [

@@ -27,8 +27,9 @@ the padding and the tracking tolerance, plus its chain's joint offsets, held pri
 active prismatic limits, which trajectories are checked to keep between waypoints too).
 
 The square is stored as the scene's other shapes are (:class:`~larc_jax.model.shapes.Shapes`, kind
-``box``, size ``(2 L, 2 L, 2 delta)``); a plane whose normal is exactly ``±z`` in the base frame
-is an axis-aligned box. Its rotation is built from ``n`` in float64 (third column ``n``), its rounding
+``box``, size ``(2 L, 2 L, 2 delta)``); a ``.scene`` plane whose normal is exactly ``±z`` in the
+base frame is an axis-aligned box, every other plane (a YAML one always) a posed box. Its
+rotation is built from ``n`` in float64 (third column ``n``), its rounding
 defect counted like any posed shape's (R1 of :mod:`larc_jax.obstacles.convex_shapes`). Every
 stage's rounding terms are measured on the numbers as computed: the capsule stage's in the
 shape frame grow with the robot's distance from ``c``, not with ``L``; the hull and swept stages'

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LarcInputError
-from ..io import short_repr
+from ..io import read_input_bytes, short_repr
 from .point_sets import MAX_POINTS, read_pcd_points
 
 __all__ = ["SensorCloud", "read_pcd", "read_plain", "read_octomap", "unknown_voxels", "check_voxel", "voxel_reduce", "radius_up", "convert_sensor_file",
@@ -94,7 +94,7 @@ def read_pcd(path: str | Path) -> SensorCloud:
     path = Path(path)
     if not path.is_file():
         raise LarcInputError(f"{path}: no such file")
-    P, vp = read_pcd_points(path.read_bytes(), str(path))
+    P, vp = read_pcd_points(read_input_bytes(path, "point cloud"), str(path))  # as scenes read it: size capped
     notes = ()
     if vp.shape == (7,) and not np.array_equal(vp, [0, 0, 0, 1, 0, 0, 0]):
         notes = (f"its VIEWPOINT (sensor pose tx ty tz qw qx qy qz = {' '.join(f'{v:g}' for v in vp)}) is not "
