@@ -83,7 +83,7 @@ ROOT = Path(__file__).resolve().parent.parent
 STAGEB_DIR = ROOT / "results" / "stageB" / "dataset" / "trajectories"
 SCENES_DIR = ROOT / "configs" / "scenes"
 
-__all__ = ["stageB_dataset", "stageB_like", "decisions_sha256", "main"]
+__all__ = ["stageB_dataset", "stageB_like", "decisions_sha256", "tree_sentence", "main"]
 
 ENCLOSURE = "capsules"
 """The interval test of the kernel, reference, audit, stream and RSS sections (module docstring)."""
@@ -102,6 +102,16 @@ for LARC's capsule test, measured with and without a pause of 8 s after the firs
 of calls matters, not the time), and a median of five rounds that start there carries it."""
 MAX_CALL_N = 10_000
 """Largest N of the RSS section measured as one ``certify`` call (module docstring)."""
+
+
+def tree_sentence(tree: dict) -> str:
+    """The sentence the README and the bench table say of the command line's device tree
+    (:mod:`experiments.bench_coldstart`'s ``tree``)."""
+    first, warm = tree["first_ever"], tree["warm_cache"]
+    return (f"The device tree from the command line ({tree['trajectories']} Stage B trajectories of "
+            f"`{tree['scene']}` in one `larc certify`, default cascade): {first['wall_s']:.2f} s with an empty cache "
+            f"and "
+            f"{warm['wall_s']:.2f} s with a warm one, {warm['compile_s']:.2f} s of it loading the compiled kernels.")
 
 
 def stageB_dataset(robot):
@@ -583,6 +593,9 @@ def markdown(out: dict) -> str:
                   f"| first ever (empty compilation cache) | {c['first_ever']['wall_s']:.2f} s | ≤ 15 s |",
                   f"| second and later (warm cache) | {c['warm_cache']['wall_s']:.2f} s | ≤ 2 s |",
                   f"| a wrong `--hold`, refused (exit 2) | {c['bad_option_s']:.2f} s | < 1 s |"]
+        if "tree" in c:
+            t = c["tree"]
+            lines += ["", tree_sentence(t)]
     if "manifest" in out:
         m = out["manifest"]
         lines += ["", f"`larc certify --manifest`, {m['n']:,} rows (the {m['distinct_trajectories']} planned "

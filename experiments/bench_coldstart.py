@@ -13,7 +13,11 @@ new process, each time timing the whole process (wall clock, from ``subprocess``
 * **no cache**: ``repeats`` runs with ``--no-compile-cache`` (what every run cost before the
   cache);
 * **bad option**: ``repeats`` runs with a wrong ``--hold`` (a joint the robot does not have),
-  which must be refused (exit 2) before anything compiles.
+  which must be refused (exit 2) before anything compiles;
+* **device tree**: the first 32 Stage B trajectories of ``medium_window`` in one ``larc certify``
+  (:data:`TREE_COMMAND`: enough that LARC runs the device tree,
+  :data:`larc_jax.engine.tree_pool.TREE_FROM_TRAJECTORIES`), once with an empty cache and
+  ``repeats`` times with the cache that run filled.
 
 The phases come from ``larc -v``'s ``time:`` line (loading the robot: URDF parse, capsule file
 and motion constants; reading the trajectory; certifying, split into compiling — tracing,
@@ -39,6 +43,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "configs" / "examples"
 COMMAND = ["certify", str(EXAMPLES / "reach_left.yaml"), "--scene", str(EXAMPLES / "cell.yaml")]
+STAGEB_SET = ROOT / "results" / "stageB" / "dataset" / "trajectories" / "medium_window"
+TREE_COMMAND = ["certify", *(str(p) for p in sorted(STAGEB_SET.glob("*.yaml"))[:32]), "--scene",
+                str(ROOT / "configs" / "scenes" / "medium_window.yaml"), "--no-fail-on-uncertified"]
 TIME_LINE = re.compile(r"time: (?P<laps>.*) \(of which compiling (?P<compile>[\d.]+) s, running (?P<run>[\d.]+) s\)")
 
 __all__ = ["run_once", "refusal_once", "measure", "main"]
@@ -48,14 +55,14 @@ def _larc() -> list[str]:
     return [sys.executable, "-m", "larc_jax.drivers.cli"]
 
 
-def run_once(cache_home: str | None, *extra: str) -> dict:
-    """One fresh ``larc -v certify`` process: wall seconds and the phases it logs."""
+def run_once(cache_home: str | None, *extra: str, command: list[str] = COMMAND) -> dict:
+    """One fresh ``larc -v`` process of ``command``: wall seconds and the phases it logs."""
     env = dict(os.environ)
     if cache_home is not None:
         env["XDG_CACHE_HOME"] = cache_home
     env.pop("LARC_COMPILE_CACHE", None)
     t0 = time.perf_counter()
-    p = subprocess.run(_larc() + ["-v", *extra, *COMMAND], env=env, capture_output=True, text=True, cwd=ROOT)
+    p = subprocess.run(_larc() + ["-v", *extra, *command], env=env, capture_output=True, text=True, cwd=ROOT)
     wall = time.perf_counter() - t0
     if p.returncode != 0:
         raise RuntimeError(f"larc exited {p.returncode}:\n{p.stderr}")
@@ -106,11 +113,16 @@ def measure(repeats: int = 3) -> dict:
             nocache.append(run_once(shared, "--no-compile-cache"))
         for _ in range(repeats):
             refused.append(refusal_once(shared))
+    with tempfile.TemporaryDirectory() as cache:
+        tree_first = run_once(cache, command=TREE_COMMAND)
+        tree_warm = [run_once(cache, command=TREE_COMMAND) for _ in range(repeats)]
     out = dict(
         command="larc certify configs/examples/reach_left.yaml --scene configs/examples/cell.yaml",
         repeats=repeats, import_s=round(statistics.median(imports), 3),
         first_ever=_median(first), warm_cache=_median(warm), no_cache=_median(nocache),
         bad_option_s=round(statistics.median(refused), 3),
+        tree=dict(trajectories=len(TREE_COMMAND) - 4, scene="medium_window", first_ever=_median([tree_first]),
+                  warm_cache=_median(tree_warm)),
         machine=dict(cpus=os.cpu_count(), system=f"{platform.system()} {platform.machine()}",
                      python=platform.python_version(), load_average_before=[round(x, 2) for x in load_before],
                      load_average_after=[round(x, 2) for x in os.getloadavg()]),
@@ -136,6 +148,9 @@ def main(argv=None) -> int:
         print(f"{name:>10}: {r['wall_s']:.2f} s wall (robot {r['robot_s']:.2f} s, certify {r['certify_s']:.2f} s: "
               f"compile {r['compile_s']:.2f} s, run {r['run_s']:.2f} s)")
     print(f"    import: {out['import_s']:.2f} s (fresh python, import larc_jax.drivers.cli + certify)")
+    t = out["tree"]
+    print(f"      tree: {t['trajectories']} trajectories, {t['first_ever']['wall_s']:.2f} s wall with an empty cache, "
+          f"{t['warm_cache']['wall_s']:.2f} s warm (compiling {t['warm_cache']['compile_s']:.2f} s)")
     print(f"bad option: refused in {out['bad_option_s']:.2f} s")
     print(f"warm cache: dominated by {out['warm_cache_dominant_phase']}; load average "
           f"{out['machine']['load_average_before']} -> {out['machine']['load_average_after']}")

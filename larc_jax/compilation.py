@@ -12,13 +12,16 @@ which computes the cache key).
 * The library never changes ``jax.config`` by itself (importing it flips nothing): Python
   users opt in with :func:`enable_compile_cache`, which sets JAX's global cache options (the
   cache directory, and thresholds of zero so that even small kernels are kept).
-* With the cache on, the interval kernel is also kept *traced*: the first call of each kernel
-  shape exports it (:mod:`jax.export`, the traced and lowered StableHLO) into the cache folder,
-  and later processes load that instead of tracing the Python code again
-  (:func:`cached_kernel_call`; tracing costs about as much as loading the compiled kernel).
-  An export is keyed by the SHA-256 of every source file of ``larc_jax``, the JAX and jaxlib
-  versions (:func:`library_hash`), the backend, the x64 mode, and the call's static structure and argument shapes, so a
-  changed library, JAX or argument never meets a stale kernel.
+* With the cache on, the kernels (the interval kernels, the spline tables' level 0 and the
+  device tree's program) are also kept *compiled*: the first call of each kernel shape serializes
+  its XLA executable (:mod:`jax.experimental.serialize_executable`) into the cache folder, and
+  later processes load that instead of tracing, lowering and compiling again
+  (:func:`cached_kernel_call`; JAX's own cache still traces and lowers, which computes its key,
+  and that costs about as much as loading). An executable is keyed by the SHA-256 of every source
+  file of ``larc_jax`` and the versions of the packages it uses (:func:`library_hash`), the
+  backend, device and CPU features (:func:`machine_key`), the x64 mode, and the call's static
+  arguments, structure and argument shapes, so a changed library, JAX, machine or argument never
+  meets a stale kernel; one that fails its first run is dropped and compiled again.
 * With the cache on, the loaders also keep what they build from the robot's files
   (:mod:`larc_jax.model.robot_cache`): the robot model, the URDF's parse and the hull parts,
   keyed by the same library hash (:func:`library_hash`) and the SHA-256 of the files: a later
@@ -32,6 +35,7 @@ which computes the cache key).
 
 from __future__ import annotations
 
+import collections
 import functools
 import hashlib
 import os
@@ -40,7 +44,7 @@ from pathlib import Path
 
 __all__ = ["CACHE_ENV", "default_cache_dir", "cache_dir_from_env", "enable_compile_cache", "keep_builds_in", "cached_kernel_call",
            "cached_kernel", "tracked_call",
-           "CompileClock"]
+           "release_kernels", "machine_key", "kernel_name", "KEPT_IN_MEMORY", "CompileClock"]
 
 CACHE_ENV = "LARC_COMPILE_CACHE"
 """Environment variable: ``0`` / ``false`` / ``off`` / ``no`` turn the command line's cache off; a
@@ -81,7 +85,7 @@ def enable_compile_cache(path: str | os.PathLike | None = None) -> Path:
 
 
 def keep_builds_in(path: str | os.PathLike | None = None) -> Path:
-    """Keep the traced kernels (:func:`cached_kernel_call`) and what the loaders build from the
+    """Keep the compiled kernels (:func:`cached_kernel_call`) and what the loaders build from the
     robot's files (:mod:`larc_jax.model.robot_cache`) in ``path`` (default
     :func:`default_cache_dir`), without importing JAX or changing its configuration: the command
     line calls this first, reads and checks every input (a robot kept here loads without
@@ -95,13 +99,22 @@ def keep_builds_in(path: str | os.PathLike | None = None) -> Path:
 
 
 _EXPORT_DIR: Path | None = None
-"""Where traced kernels are kept (set by :func:`enable_compile_cache`; None: not kept)."""
-_LOADED: dict = {}
-"""Kernel key → jitted call of its export, for this process."""
+"""Where compiled kernels are kept (set by :func:`enable_compile_cache`; None: not kept)."""
+KEPT_IN_MEMORY = 48
+"""At most this many kernel executables are held by :func:`cached_kernel_call` in a process, the
+least recently used dropped first (it stays in the cache folder, and is loaded again in a fraction
+of a second when met again): each compiled CPU executable holds hundreds of memory mappings (about
+800 for an interval kernel, 1,500 for the device tree's program, measured), and a long-lived
+process meeting many kernel shapes would otherwise reach the system's limit
+(``vm.max_map_count``, 65,530 by default), where XLA aborts."""
+_LOADED: collections.OrderedDict = collections.OrderedDict()
+"""Kernel key → its executable (:class:`_Kept`), for this process, least recently used first
+(:data:`KEPT_IN_MEMORY`, :func:`release_kernels`)."""
+_LOADED_LOCK = threading.Lock()
 
 
 def export_dir() -> Path | None:
-    """The folder where traced kernels are kept, or None when the cache is off."""
+    """The folder where compiled kernels are kept, or None when the cache is off."""
     return _EXPORT_DIR
 
 
@@ -125,10 +138,44 @@ def library_hash() -> str:
     return h.hexdigest()
 
 
+@functools.lru_cache(maxsize=1)
+def machine_key() -> str:
+    """What a compiled executable is valid for besides the library: JAX's default backend, its
+    platform version and device kind, and (on Linux) the host CPU's feature flags, since XLA's CPU
+    backend compiles for the features of the machine it runs on; a kept executable never meets
+    another machine's (a cache folder shared over a network, a container moved between hosts)."""
+    import jax
+
+    device = jax.devices()[0]
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        pass
+    return "\0".join([jax.default_backend(), getattr(device.client, "platform_version", ""), device.device_kind, flags])
+
+
+def kernel_name(fn) -> tuple[str, str]:
+    """A kernel's name and the static arguments a :func:`functools.partial` binds (keywords of
+    plain values, e.g. the device tree's step widths), as they enter its cache key."""
+    if isinstance(fn, functools.partial):
+        name, _ = kernel_name(fn.func)
+        return name, repr((fn.args, sorted(fn.keywords.items())))
+    return fn.__name__, ""
+
+
 def cached_kernel_call(fn, args: tuple):
-    """``fn(*args)`` for a jitted ``fn`` returning a tuple of arrays; with the cache on
-    (:func:`enable_compile_cache`), through its :mod:`jax.export` kept in the cache folder, so a
-    process that finds the export skips tracing ``fn``. Same computation, same results."""
+    """``fn(*args)`` for a jitted ``fn`` (or a :func:`functools.partial` of a jittable function
+    binding static keywords) returning a tuple of arrays; with the cache on
+    (:func:`enable_compile_cache`), through its compiled executable kept in the cache folder, so
+    a process that finds it skips tracing, lowering and compiling ``fn``. Same computation, same
+    results.
+
+    An executable is keyed by :func:`library_hash`, :func:`machine_key`, the x64 mode, the
+    kernel's name and static arguments (:func:`kernel_name`), and the arguments' structure,
+    shapes and dtypes. It is a pickle (:mod:`jax.experimental.serialize_executable`): the cache
+    folder is trusted like the code itself, as JAX's own cache is."""
     if _EXPORT_DIR is None:
         return fn(*args)
     import jax
@@ -136,13 +183,31 @@ def cached_kernel_call(fn, args: tuple):
 
     leaves, treedef = jax.tree.flatten(args)
     avals = [jax.ShapeDtypeStruct(np.shape(x), np.result_type(getattr(x, "dtype", x))) for x in leaves]
-    key = hashlib.sha256("\0".join([library_hash(), jax.default_backend(), fn.__name__, str(jax.config.jax_enable_x64),
+    name, static = kernel_name(fn)
+    key = hashlib.sha256("\0".join([library_hash(), machine_key(), name, static, str(jax.config.jax_enable_x64),
                                      str(treedef),
                                      repr([(a.shape, str(a.dtype)) for a in avals])]).encode()).hexdigest()
-    call = _LOADED.get(key)
-    if call is None:
-        call = _LOADED[key] = _load_or_export(fn, treedef, avals, _EXPORT_DIR / f"{fn.__name__}-{key[:40]}.jaxexport")
-    return call(*leaves)
+    with _LOADED_LOCK:
+        call = _LOADED.get(key)
+        if call is not None:
+            _LOADED.move_to_end(key)
+    if call is None:  # loaded or compiled outside the lock: threads running other kernels go on
+        call = _Kept(fn, treedef, avals, _EXPORT_DIR / f"{name}-{key[:40]}.xlaexe")
+        with _LOADED_LOCK:
+            _LOADED[key] = call
+            while len(_LOADED) > KEPT_IN_MEMORY:
+                _LOADED.popitem(last=False)
+    return call(leaves)
+
+
+def release_kernels() -> None:
+    """Drop the executables this process loaded or compiled through :func:`cached_kernel_call`
+    (they stay in the cache folder). Each compiled CPU executable holds hundreds of memory
+    mappings: a long-lived process that meets many kernel shapes (a test suite, a Dask worker)
+    calls this with :func:`jax.clear_caches` to stay under the system's mapping limit
+    (:data:`KEPT_IN_MEMORY` bounds what this module holds)."""
+    with _LOADED_LOCK:
+        _LOADED.clear()
 
 
 _SEEN: set = set()
@@ -188,23 +253,80 @@ def _kernel_call(kernel, *args):
     return cached_kernel_call(kernel, args)
 
 
-def _load_or_export(fn, treedef, avals, path: Path):
-    import jax
+class _Kept:
+    """One kernel shape's executable: loaded from ``path``, or compiled and written there."""
 
-    from .io import atomic_write_bytes
+    def __init__(self, fn, treedef, avals, path: Path):
+        self.fn, self.treedef, self.avals, self.path = fn, treedef, avals, path
+        self.compiled, self.checked = self._load(), False
+        if self.compiled is None:
+            self.compiled, self.checked = self._compile(), True
 
-    try:
-        exported = jax.export.deserialize(bytearray(path.read_bytes()))
-    except Exception:  # noqa: BLE001 - missing, unreadable or from another version: export again
+    def __call__(self, leaves):
+        import numpy as np
+
+        leaves = [x if hasattr(x, "dtype") else np.asarray(x, a.dtype) for x, a in zip(leaves, self.avals)]
+        if self.checked:
+            return self.compiled(*leaves)
+        # A loaded executable's first run is waited for: one that cannot run (a file from a
+        # broken write, an XLA that cannot link what it kept) is dropped and compiled again.
+        import jax
+
+        try:
+            out = jax.block_until_ready(self.compiled(*leaves))
+        except jax.errors.JaxRuntimeError:
+            self.path.unlink(missing_ok=True)
+            self.compiled = self._compile()
+            out = self.compiled(*leaves)
+        self.checked = True
+        return out
+
+    def _load(self):
+        import pickle
+        import time
+
+        import jax
+        from jax.experimental.serialize_executable import deserialize_and_load
+
+        start = time.perf_counter()
+        try:
+            payload, in_tree, out_tree = pickle.loads(self.path.read_bytes())
+            compiled = deserialize_and_load(payload, in_tree, out_tree, execution_devices=jax.devices()[:1])
+        except Exception:  # noqa: BLE001 - missing, unreadable or from another version: compile again
+            return None
+        CompileClock.count_load(time.perf_counter() - start)
+        return compiled
+
+    def _compile(self):
+        import pickle
+        import secrets
+
+        import jax
+        from jax.experimental.serialize_executable import serialize
+
+        from .io import atomic_write_bytes
+
+        fn, treedef = self.fn, self.treedef
+
         def flat(*leaves):
             return fn(*jax.tree.unflatten(treedef, leaves))
 
-        exported = jax.export.export(jax.jit(flat))(*avals)
+        # JAX's persistent cache keys a module by its name too: named after this file, a miss here
+        # is a miss there. An executable JAX's cache loaded cannot be serialized again (it runs,
+        # but a second load fails: "Function ... not found"), so a hit there compiles once more
+        # under a fresh name.
+        for salt in ("", "_" + secrets.token_hex(8)):
+            flat.__name__ = flat.__qualname__ = "larc_" + self.path.stem.replace("-", "_") + salt
+            with CompileClock() as clock:
+                compiled = jax.jit(flat).lower(*self.avals).compile()
+            if not clock.cache_hits:
+                break
         try:
-            atomic_write_bytes(path, bytes(exported.serialize()))
-        except OSError:  # an unwritable cache only costs the next process a trace
-            pass
-    return jax.jit(exported.call)
+            payload, in_tree, out_tree = serialize(compiled)
+            atomic_write_bytes(self.path, pickle.dumps((payload, in_tree, out_tree)))
+        except (ValueError, NotImplementedError, OSError, pickle.PicklingError):
+            pass  # not serializable, or an unwritable cache: the next process compiles again
+        return compiled
 
 
 _TRACE = "/jax/core/compile/jaxpr_trace_duration"
@@ -262,6 +384,16 @@ class CompileClock:
             jax.monitoring.register_event_duration_secs_listener(on_duration)
             jax.monitoring.register_event_listener(on_event)
             cls._installed = True
+
+    @classmethod
+    def count_load(cls, seconds: float) -> None:
+        """Count an executable :func:`cached_kernel_call` loaded itself (JAX sends no event for
+        it) as a compile that hit the cache."""
+        with cls._lock:
+            for clock in list(cls._active):
+                clock.compiles += 1
+                clock.cache_hits += 1
+                clock.compile_s += float(seconds)
 
     def __enter__(self) -> "CompileClock":
         self._install()

@@ -10,7 +10,7 @@
   ``$XDG_CACHE_HOME/larc_jax/tests`` (``~/.cache/...``), so a second test session compiles
   little; ``LARC_TEST_COMPILE_CACHE=DIR`` moves it, ``LARC_TEST_COMPILE_CACHE=tmp`` uses a fresh
   temporary folder (a cold, hermetic session). Entries are keyed by the compiled program (and
-  traced kernels by the library's sources), so a code change never meets a stale entry.
+  kept executables by the library's sources and the machine), so a code change never meets a stale entry.
 """
 
 from __future__ import annotations
@@ -73,11 +73,15 @@ def _release_compiled_kernels():
     holds memory mappings, and one long pytest process compiling hundreds of kernel shapes
     (interval, broad phase, cascade, self test, per bucket) can reach the kernel's
     vm.max_map_count (65530), where XLA aborts. Later modules reload from the persistent
-    compilation cache the tests share."""
+    compilation cache the tests share. The kernels :func:`larc_jax.compilation.cached_kernel_call`
+    keeps (with the cache on) are JAX's cache's reach too: released with it."""
     yield
     import gc
 
     import jax
 
+    from larc_jax.compilation import release_kernels
+
     jax.clear_caches()
+    release_kernels()
     gc.collect()

@@ -3,6 +3,7 @@ environment), compile time reported as such, and a library that flips no global 
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import subprocess
@@ -45,7 +46,7 @@ def test_cache_is_filled_then_used_and_compiling_is_shown(tmp_path):
     n, hits = (int(w) for w in line.split("kernels: ")[1].replace(",", "").split()[:5:4])
     assert n > 0 and hits == n, line  # every kernel came from the cache
     assert sorted(cache.iterdir()) == sorted(entries)
-    assert list((cache / "exported").glob("*.jaxexport")) and list((cache / "robots").glob("*.npz"))
+    assert list((cache / "exported").glob("*.xlaexe")) and list((cache / "robots").glob("*.npz"))
     # Loaded kernels compute exactly what freshly traced ones do.
     p = run(tmp_path, "--no-compile-cache", *ARGS, "--leaves", "cold.csv", LARC_COMPILE_CACHE="")
     assert p.returncode == 0, p.stderr
@@ -100,42 +101,92 @@ def test_enable_compile_cache_is_an_explicit_opt_in(tmp_path):
     assert p.returncode == 0 and "ok" in p.stdout, p.stderr
 
 
-def test_exported_kernel_is_the_same_computation(tmp_path, monkeypatch, robot, capsules):
-    """The traced kernel kept in the cache (jax.export) gives bit-identical results to the jitted
-    one, when first exported and when loaded by a later process (simulated: in-memory table
-    cleared)."""
+def _interval_args(robot, capsules, seed=3):
     import numpy as np
 
     from larc_jax.engine import batch as B
-    from larc_jax import compilation
     from larc_jax.leaf.interval import trajectory_rounding
     from larc_jax.model.scene import read_scene
     from larc_jax.model.trajectory_files import read_trajectory
 
-    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
-    monkeypatch.setattr(compilation, "_LOADED", {})
     traj = read_trajectory(EXAMPLES / "sweep_front.yaml", robot)
-    scene = read_scene(EXAMPLES / "cell.yaml")
-    rng = np.random.default_rng(3)
-    for caps in (capsules.without_links(robot, ["base_link"]),):
-        bounds = [trajectory_rounding(traj, robot, caps)]
-        b = B.prepare([traj], [scene], robot, caps, 0.01, np.float64, bounds, devices=None)
-        n = 16
-        tr = np.zeros(n, np.int64)
-        depth = rng.integers(0, 8, n)
-        index = np.array([rng.integers(0, 2**d) for d in depth])
-        args = b.kernel_args(tr, *b.endpoints(tr, depth, index))
-        import jax
+    caps = capsules.without_links(robot, ["base_link"])
+    b = B.prepare([traj], [read_scene(EXAMPLES / "cell.yaml")], robot, caps, 0.01, np.float64,
+                  [trajectory_rounding(traj, robot, caps)], devices=None)
+    rng = np.random.default_rng(seed)
+    tr = np.zeros(16, np.int64)
+    depth = rng.integers(0, 8, 16)
+    index = np.array([rng.integers(0, 2**d) for d in depth])
+    return b.kernel_args(tr, *b.endpoints(tr, depth, index))
 
-        with jax.enable_x64(True):
-            ref = [np.asarray(x) for x in B.evaluate_intervals(*args)]
-            first = [np.asarray(x) for x in compilation.cached_kernel_call(B.evaluate_intervals, args)]
-            compilation._LOADED.clear()
+
+def test_kept_kernel_is_the_same_computation(tmp_path, monkeypatch, robot, capsules):
+    """The compiled kernel kept in the cache (a serialized XLA executable) gives bit-identical
+    results to the jitted one, when first compiled and when loaded by a later process (simulated:
+    in-memory table cleared), and the load is counted as a compile that hit the cache."""
+    import jax
+    import numpy as np
+
+    from larc_jax import compilation
+    from larc_jax.engine import batch as B
+
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path / "exported")
+    monkeypatch.setattr(compilation, "_LOADED", collections.OrderedDict())
+    args = _interval_args(robot, capsules)
+    with jax.enable_x64(True):
+        ref = [np.asarray(x) for x in B.evaluate_intervals(*args)]
+        first = [np.asarray(x) for x in compilation.cached_kernel_call(B.evaluate_intervals, args)]
+        compilation.release_kernels()
+        with compilation.CompileClock() as clock:
             loaded = [np.asarray(x) for x in compilation.cached_kernel_call(B.evaluate_intervals, args)]
-        for r, f, l in zip(ref, first, loaded):
-            np.testing.assert_array_equal(r, f)
-            np.testing.assert_array_equal(r, l)
-    assert len(list((tmp_path / "exported").glob("*.jaxexport"))) == 1
+    assert clock.compiles == clock.cache_hits == 1 and clock.compile_s > 0 and clock.trace_s == 0
+    for r, f, l in zip(ref, first, loaded):
+        np.testing.assert_array_equal(r, f)
+        np.testing.assert_array_equal(r, l)
+    assert len(list((tmp_path / "exported").glob("evaluate_intervals-*.xlaexe"))) == 1
+
+
+def test_kept_kernel_keys_and_damage(tmp_path, monkeypatch, robot, capsules):
+    """Static arguments a partial binds and the machine enter the key (another file each); a
+    damaged file is compiled again and rewritten, with the same results."""
+    import functools
+
+    import jax
+    import numpy as np
+
+    from larc_jax import compilation
+
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path)
+    monkeypatch.setattr(compilation, "_LOADED", collections.OrderedDict())
+
+    @functools.partial(jax.jit, static_argnames=("power",))
+    def scaled(x, *, power):
+        return (x**power,)
+
+    x = np.arange(5.0, dtype=np.float32)
+    for power in (2, 3):
+        (y,) = compilation.cached_kernel_call(functools.partial(scaled, power=power), (x,))
+        np.testing.assert_array_equal(np.asarray(y), x**power)
+    assert len(list(tmp_path.glob("scaled-*.xlaexe"))) == 2
+    monkeypatch.setattr(compilation, "machine_key", lambda: "another machine")
+    compilation.cached_kernel_call(functools.partial(scaled, power=2), (x,))
+    files = sorted(tmp_path.glob("scaled-*.xlaexe"))
+    assert len(files) == 3
+    for f in files:
+        f.write_bytes(f.read_bytes()[: len(f.read_bytes()) // 2])  # a torn write
+    compilation.release_kernels()
+    (y,) = compilation.cached_kernel_call(functools.partial(scaled, power=2), (x,))
+    np.testing.assert_array_equal(np.asarray(y), x**2)
+    compilation.release_kernels()
+    with compilation.CompileClock() as clock:  # rewritten whole: loads
+        (y,) = compilation.cached_kernel_call(functools.partial(scaled, power=2), (x,))
+    assert clock.cache_hits == clock.compiles == 1
+    np.testing.assert_array_equal(np.asarray(y), x**2)
+    # At most KEPT_IN_MEMORY held, the least recently used dropped first.
+    monkeypatch.setattr(compilation, "KEPT_IN_MEMORY", 2)
+    for power in (4, 2, 5):
+        compilation.cached_kernel_call(functools.partial(scaled, power=power), (x,))
+    assert [call.fn.keywords["power"] for call in compilation._LOADED.values()] == [2, 5]
 
 
 def test_kept_robot_is_the_built_robot(tmp_path, monkeypatch):

@@ -126,6 +126,9 @@ def test_cold_start_figures_are_the_generated_ones():
         assert row.split(" | ")[1:] == cells[:-1] + [cells[-1] + " |"], row
     assert f"{doc['import_s']:.2f} s" in section and f"{doc['bad_option_s']:.2f} s for a wrong" in section
     assert f"load average {doc['machine']['load_average_before'][0]:.2f}" in section
+    from experiments.bench import tree_sentence
+
+    assert tree_sentence(doc["tree"]) in " ".join(section.split())
 
 
 def test_tightness_table_is_the_generated_one():

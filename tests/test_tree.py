@@ -3,6 +3,7 @@ decisions; its time ends against the NumPy dyadic ends, bit for bit."""
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import numpy as np
@@ -194,6 +195,31 @@ def test_tree_one_program_for_every_depth(robot, capsules, random_set):
         assert tree.frontier.shape == (6, depth + 1)
         _compare(batch, names, 6, tree, ulps=8, max_depth=depth)
     assert compiles.count(True) <= 1  # none when an earlier test compiled this shape already
+
+
+def test_tree_program_kept_compiled_is_the_same(robot, capsules, random_set, tmp_path, monkeypatch):
+    """With the cache on, the program is kept as an executable: compiled and written by a first
+    process, loaded by a later one (simulated: released) without tracing it, and both give what
+    the plainly jitted program gives, bit for bit."""
+    from larc_jax import compilation
+
+    trajs, scenes = random_set
+    batch, _ = _batch(robot, capsules, trajs[:6], scenes[:6])
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", None)
+    plain = run_tree(batch, 6, MAX_DEPTH, **SMALL)
+    monkeypatch.setattr(compilation, "_EXPORT_DIR", tmp_path)
+    monkeypatch.setattr(compilation, "_LOADED", collections.OrderedDict())
+    first = run_tree(batch, 6, MAX_DEPTH, **SMALL)
+    assert len(list(tmp_path.glob("tree_program-*.xlaexe"))) == 1
+    compilation.release_kernels()
+    with compilation.CompileClock() as clock:
+        loaded = run_tree(batch, 6, MAX_DEPTH, **SMALL)
+    assert clock.cache_hits == clock.compiles == 1 and clock.trace_s == 0
+    for tree in (first, loaded):
+        for field in ("traj", "depth", "index", "t0", "t1", "frontier"):
+            assert np.array_equal(getattr(tree, field), getattr(plain, field)), field
+        for a, b in zip(tree.record, plain.record):
+            assert np.array_equal(a, b, equal_nan=np.asarray(a).dtype.kind == "f")
 
 
 def test_tree_float32_geometry(robot, capsules, random_set):

@@ -472,7 +472,7 @@ def prepare(trajectories, scenes: Sequence[Scene], robot: Robot, capsules: Capsu
     obstacles = stack_scenes(scene_list, dtype, max(s.n_obstacles for s in scene_list) + 1 if cull else None)
     splines = spline_batch(*padded, n_knots=np.array([t.n_waypoints for t in trajectories] + [0] * n_pad),
                            accel=swept is not None,  # the swept stage reads accelerations
-                           call=lambda fn, args: tracked_call(fn, args, on_compile))
+                           call=lambda fn, args: tracked_call(cached_kernel(fn), args, on_compile))
     robot_g, capsules_g = _geometry(robot, capsules, dtype)
     links = None if hulls is None else Links.of(capsules, hulls)
     batch = Batch(

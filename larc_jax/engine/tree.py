@@ -63,7 +63,7 @@ import functools
 
 import numpy as np
 
-from ..compilation import tracked_call
+from ..compilation import cached_kernel, tracked_call
 from ..defaults import DEFAULT_MAX_DEPTH, MAX_DEPTH_LIMIT
 from ..lazy_jax import jax, jnp
 from ..leaf.clearance import BROAD_PHASE_K
@@ -430,9 +430,9 @@ def tree_program(robot, capsules, splines, obstacles, bounds, scene_of, t_start,
 @functools.lru_cache(maxsize=None)
 def _program(broad: bool, wide: int, narrow: int, hull: int, leaf_capacity: int):
     """One callable per static configuration (:func:`~larc_jax.compilation.tracked_call` knows a
-    shape it has seen by the callable)."""
-    return functools.partial(tree_program, broad=broad, wide=wide, narrow=narrow, hull=hull,
-                             leaf_capacity=leaf_capacity)
+    shape it has seen by the callable), kept compiled with the cache on."""
+    return cached_kernel(functools.partial(tree_program, broad=broad, wide=wide, narrow=narrow, hull=hull,
+                                           leaf_capacity=leaf_capacity))
 
 
 def run_tree(batch, n_traj: int, max_depth: int, on_compile=None, *, wide: int = WIDE_STEP,

@@ -36,7 +36,7 @@ __all__ = ["run_tree_pool", "tree_workers", "uses_tree", "TREE_FROM_TRAJECTORIES
 TREE_FROM_TRAJECTORIES = 16
 """``certify``'s LARC runs the device tree on a batch of at least this many trajectories
 (:func:`uses_tree`), the host frontier (:mod:`larc_jax.engine.certify`) on a smaller one. The
-tree is one large program per batch class, compiled (or, with the persistent cache on, traced)
+tree is one large program per batch class, compiled (or, with the persistent cache on, loaded)
 once per process, where the host frontier's kernels are small: with the tree, the README example
 (two trajectories, the cascade) took a fresh process 25.7 s with an empty cache and 7.1 s with a
 warm one (2 CPU cores, the test suite running beside it), against 6.5 s and 1.9 s with the host
