@@ -110,8 +110,7 @@ def tree_sentence(tree: dict) -> str:
     first, warm = tree["first_ever"], tree["warm_cache"]
     return (f"The device tree from the command line ({tree['trajectories']} Stage B trajectories of "
             f"`{tree['scene']}` in one `larc certify`, default cascade): {first['wall_s']:.2f} s with an empty cache "
-            f"and "
-            f"{warm['wall_s']:.2f} s with a warm one, {warm['compile_s']:.2f} s of it loading the compiled kernels.")
+            f"and {warm['wall_s']:.2f} s with a warm one, {warm['compile_s']:.2f} s of it loading the compiled kernels.")
 
 
 def stageB_dataset(robot):
@@ -594,8 +593,7 @@ def markdown(out: dict) -> str:
                   f"| second and later (warm cache) | {c['warm_cache']['wall_s']:.2f} s | ≤ 2 s |",
                   f"| a wrong `--hold`, refused (exit 2) | {c['bad_option_s']:.2f} s | < 1 s |"]
         if "tree" in c:
-            t = c["tree"]
-            lines += ["", tree_sentence(t)]
+            lines += ["", tree_sentence(c["tree"])]
     if "manifest" in out:
         m = out["manifest"]
         lines += ["", f"`larc certify --manifest`, {m['n']:,} rows (the {m['distinct_trajectories']} planned "

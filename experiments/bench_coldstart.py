@@ -44,7 +44,8 @@ ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "configs" / "examples"
 COMMAND = ["certify", str(EXAMPLES / "reach_left.yaml"), "--scene", str(EXAMPLES / "cell.yaml")]
 STAGEB_SET = ROOT / "results" / "stageB" / "dataset" / "trajectories" / "medium_window"
-TREE_COMMAND = ["certify", *(str(p) for p in sorted(STAGEB_SET.glob("*.yaml"))[:32]), "--scene",
+TREE_FILES = [str(p) for p in sorted(STAGEB_SET.glob("*.yaml"))[:32]]
+TREE_COMMAND = ["certify", *TREE_FILES, "--scene",
                 str(ROOT / "configs" / "scenes" / "medium_window.yaml"), "--no-fail-on-uncertified"]
 TIME_LINE = re.compile(r"time: (?P<laps>.*) \(of which compiling (?P<compile>[\d.]+) s, running (?P<run>[\d.]+) s\)")
 
@@ -121,7 +122,7 @@ def measure(repeats: int = 3) -> dict:
         repeats=repeats, import_s=round(statistics.median(imports), 3),
         first_ever=_median(first), warm_cache=_median(warm), no_cache=_median(nocache),
         bad_option_s=round(statistics.median(refused), 3),
-        tree=dict(trajectories=len(TREE_COMMAND) - 4, scene="medium_window", first_ever=_median([tree_first]),
+        tree=dict(trajectories=len(TREE_FILES), scene="medium_window", first_ever=_median([tree_first]),
                   warm_cache=_median(tree_warm)),
         machine=dict(cpus=os.cpu_count(), system=f"{platform.system()} {platform.machine()}",
                      python=platform.python_version(), load_average_before=[round(x, 2) for x in load_before],
