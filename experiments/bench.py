@@ -210,6 +210,7 @@ def section_stageB(robot, capsules, trajs, scenes, enclosure: str, paired: bool 
     out["fine_over_larc_time"] = out["fine"]["warm_s"] / out["larc"]["warm_s"]
     out["fine_over_larc_evaluations"] = out["fine"]["evaluations"] / out["larc"]["evaluations"]
     if paired:
+        _release_executables()  # the whole set's programs, before the paired section's 8 shapes x 3 methods
         out["paired"] = section_paired(robot, capsules, trajs, scenes, enclosure)
         out["floor"] = section_floor(robot, capsules, trajs, scenes, enclosure)
     return out
@@ -218,25 +219,48 @@ def section_stageB(robot, capsules, trajs, scenes, enclosure: str, paired: bool 
 def section_paired(robot, capsules, trajs, scenes, enclosure: str, repeats: int = PAIRED_REPEATS) -> dict:
     """The paper's paired protocol: each trajectory certified alone, by LARC and by fixed-fine,
     after one untimed call each (compiling its shapes), ``repeats`` timed rounds (the order of
-    the two methods alternating); per trajectory the median of its rounds per method, and the
-    median over trajectories of the ratio fine / LARC."""
+    the methods turning every round); per trajectory the median of its rounds per method, and the
+    median over trajectories of the ratio fine / LARC. Also LARC on the device tree in the same
+    rounds (:func:`_tree_forced`; by default ``certify`` runs a one-trajectory batch on the host
+    frontier, after ``warm_up_tree`` on the tree), its median and its median ratio fine / tree."""
     from larc_jax import certify
 
-    larc_ms, fine_ms, ratios = [], [], []
+    names = ("larc", "fine", "tree")
+    ms = {m: [] for m in names}
+    ratios, tree_ratios = [], []
     for traj, scene in zip(trajs, scenes):
         calls = {m: (lambda m=m: certify([traj], [scene], robot, capsules, method=m, enclosure=enclosure))
                  for m in ("larc", "fine")}
+        calls["tree"] = _tree_forced(calls["larc"])
         for call in calls.values():
             call()
         times = {m: [] for m in calls}
         for r in range(repeats):
-            for m in (("larc", "fine") if r % 2 == 0 else ("fine", "larc")):
+            for m in names[r % 3:] + names[: r % 3]:
                 times[m].append(_timed(calls[m])[1])
-        larc_ms.append(1e3 * statistics.median(times["larc"]))
-        fine_ms.append(1e3 * statistics.median(times["fine"]))
-        ratios.append(fine_ms[-1] / larc_ms[-1])
-    return {"n": len(trajs), "repeats": repeats, "larc_median_ms": statistics.median(larc_ms),
-            "fine_median_ms": statistics.median(fine_ms), "median_fine_over_larc": statistics.median(ratios)}
+        for m in names:
+            ms[m].append(1e3 * statistics.median(times[m]))
+        ratios.append(ms["fine"][-1] / ms["larc"][-1])
+        tree_ratios.append(ms["fine"][-1] / ms["tree"][-1])
+    return {"n": len(trajs), "repeats": repeats, "larc_median_ms": statistics.median(ms["larc"]),
+            "fine_median_ms": statistics.median(ms["fine"]), "median_fine_over_larc": statistics.median(ratios),
+            "tree_median_ms": statistics.median(ms["tree"]), "median_fine_over_tree": statistics.median(tree_ratios)}
+
+
+def _tree_forced(call):
+    """``call`` with ``certify``'s LARC running small batches on the device tree
+    (:func:`larc_jax.engine.tree_pool.small_batches_on_tree`, what ``warm_up_tree`` turns on),
+    set back after the call: the other columns keep ``certify``'s default."""
+    from larc_jax.engine.tree_pool import small_batches_on_tree
+
+    def forced():
+        was = small_batches_on_tree(True)
+        try:
+            return call()
+        finally:
+            small_batches_on_tree(was)
+
+    return forced
 
 
 def section_floor(robot, capsules, trajs, scenes, enclosure: str, n: int = 16) -> dict:
@@ -487,7 +511,9 @@ def main(argv=None) -> int:
         return 0
 
     out["stageB"] = {}
-    for enc in enclosures:
+    for k, enc in enumerate(enclosures):
+        if k:
+            _release_executables()  # the one-trajectory trees of one enclosure (8 shapes) before the next's
         out["stageB"][enc] = section_stageB(robot, capsules, trajs, scenes, enc, paired=not args.skip_paired)
         checkpoint()
     if args.stageB_only:
@@ -580,6 +606,12 @@ def markdown(out: dict) -> str:
                           f"{1e6 * extra['fine'] / hull['fine']['capsule_open']:.1f} µs per interval its capsule "
                           f"stage leaves open, {hull['larc']['capsule_open']:,} of LARC's and "
                           f"{hull['fine']['capsule_open']:,} of fine's.")
+    if paired and all("tree_median_ms" in runs[e]["paired"] for e in encs):
+        lines += ["", "One trajectory per call with LARC on the device tree (as after `warm_up_tree`; by default "
+                      "`certify` runs a batch of fewer than 16 on the host frontier), in the same rounds: median " + ", ".join(
+                          f"{runs[e]['paired']['tree_median_ms']:.2f} ms ({names[e]})" for e in encs)
+                  + "; fine / tree, median of per-trajectory ratios, " + ", ".join(
+                      f"{runs[e]['paired']['median_fine_over_tree']:.2f}× ({names[e]})" for e in encs) + "."]
     floors = [f"{runs[e]['floor']['one_interval_median_ms']:.2f} ms ({names[e]})" for e in encs if "floor" in runs[e]]
     if floors:
         lines += ["", f"One trajectory certified on one interval (`method=\"coarse\"`, `coarse_depth=0`: that "

@@ -28,7 +28,7 @@ __all__ = [
     "DEFAULT_MARGIN_M", "DEFAULT_MAX_DEPTH", "DEFAULT_COARSE_DEPTH", "certify_stream", "LeafTable",
     "write_certificate", "verify_certificate", "Refuted", "VerifyPins", "VerifyReport", "view",
     "RunSpec", "fit_robot_file", "parse_hold", "parse_joints", "parse_package_dirs",
-    "ObstacleSet", "AlignedBoxes", "ConvexShapes", "Shapes", "scene_obstacles",
+    "ObstacleSet", "AlignedBoxes", "ConvexShapes", "Shapes", "scene_obstacles", "warm_up_tree",
 ]
 
 _loaded = False
@@ -38,6 +38,7 @@ def _load() -> None:
     """Import the public API into this namespace (on first use: see :func:`__getattr__`)."""
     global _loaded
     from .engine.certify import Method, certify
+    from .engine.warm_up import warm_up_tree
     from .compilation import enable_compile_cache
     from .defaults import DEFAULT_COARSE_DEPTH, DEFAULT_MARGIN_M, DEFAULT_MAX_DEPTH
     from .enclosure import (

@@ -19,8 +19,9 @@ which computes the cache key).
   (:func:`cached_kernel_call`; JAX's own cache still traces and lowers, which computes its key,
   and that costs about as much as loading). An executable is keyed by the SHA-256 of every source
   file of ``larc_jax`` and the versions of the packages it uses (:func:`library_hash`), the
-  backend, device and CPU features (:func:`machine_key`), the x64 mode, and the call's static
-  arguments, structure and argument shapes, so a changed library, JAX, machine or argument never
+  backend, device and CPU features and the compiler's options (``XLA_FLAGS``, :func:`machine_key`),
+  the x64 mode, and the call's static arguments, structure and argument shapes, so a changed
+  library, JAX, machine, compiler option or argument never
   meets a stale kernel; one that fails its first run is dropped and compiled again.
 * With the cache on, the loaders also keep what they build from the robot's files
   (:mod:`larc_jax.model.robot_cache`): the robot model, the URDF's parse and the hull parts,
@@ -143,7 +144,12 @@ def machine_key() -> str:
     """What a compiled executable is valid for besides the library: JAX's default backend, its
     platform version and device kind, and (on Linux) the host CPU's feature flags, since XLA's CPU
     backend compiles for the features of the machine it runs on; a kept executable never meets
-    another machine's (a cache folder shared over a network, a container moved between hosts)."""
+    another machine's (a cache folder shared over a network, a container moved between hosts).
+
+    Also the compiler's own options, as JAX's cache key has them: ``XLA_FLAGS`` and
+    ``LIBTPU_INIT_ARGS`` (e.g. ``--xla_cpu_enable_fast_math=true`` changes rounding, and the
+    guards assume IEEE arithmetic as compiled by default), and the trace-time matmul precision; a
+    process started with other options never loads an executable compiled under these."""
     import jax
 
     device = jax.devices()[0]
@@ -153,7 +159,9 @@ def machine_key() -> str:
             flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
     except OSError:
         pass
-    return "\0".join([jax.default_backend(), getattr(device.client, "platform_version", ""), device.device_kind, flags])
+    compiler = [os.environ.get(name, "") for name in ("XLA_FLAGS", "LIBTPU_INIT_ARGS")]
+    return "\0".join([jax.default_backend(), getattr(device.client, "platform_version", ""), device.device_kind, flags,
+                      *compiler, str(jax.config.jax_default_matmul_precision)])
 
 
 def kernel_name(fn) -> tuple[str, str]:

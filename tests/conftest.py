@@ -81,7 +81,9 @@ def _release_compiled_kernels():
     import jax
 
     from larc_jax.compilation import release_kernels
+    from larc_jax.engine.tree_pool import small_batches_on_tree
 
     jax.clear_caches()
     release_kernels()
+    small_batches_on_tree(False)  # a module that warmed the tree up leaves the next on the host frontier
     gc.collect()

@@ -45,7 +45,8 @@ def _run(evals: int, certified: int, paired: bool) -> dict:
     out = {"n_trajectories": 7, "larc": dict(method), "fine": dict(method, evaluations=3 * evals, warm_s=1.0),
            "fine_over_larc_time": 2.0, "fine_over_larc_evaluations": 3.0}
     if paired:
-        out["paired"] = {"larc_median_ms": 2.0, "fine_median_ms": 3.0, "median_fine_over_larc": 1.5}
+        out["paired"] = {"larc_median_ms": 2.0, "fine_median_ms": 3.0, "median_fine_over_larc": 1.5,
+                         "tree_median_ms": 1.25, "median_fine_over_tree": 2.4}
     return out
 
 
@@ -59,6 +60,7 @@ def test_partial_run_renders_what_it_measured(encs, paired):
     assert header.count("LARC") == len(encs) and header.count("fine") == len(encs)
     assert ("cascade: LARC" in header) == ("hull" in encs) and ("capsules: LARC" in header) == ("capsules" in encs)
     assert ("one trajectory per call" in text) == paired
+    assert ("LARC on the device tree" in text and "1.25 ms" in text and "2.40×" in text) == paired
     assert ("The cascade costs LARC" in text) == (len(encs) == 2)
     assert "kernel (XLA" not in text and "Streaming" not in text  # sections it did not measure
     widths = {line.count("|") for line in text.splitlines() if line.startswith("| ") and "capsules: LARC" not in line

@@ -216,3 +216,29 @@ def test_kept_robot_is_the_built_robot(tmp_path, monkeypatch):
     key = {"any": "thing"}
     robot_cache.keep_robot(key, built, [tmp_path / "gone.stl"])
     assert robot_cache.cached_robot(key) is None
+
+
+def test_compiler_options_enter_the_kept_kernels_key(tmp_path):
+    """A process started with other XLA options (``XLA_FLAGS``; fast math would change rounding)
+    compiles and keeps its own executable instead of loading one compiled under the default
+    options; a later process with the same options loads its own."""
+    code = ("import functools, jax, numpy as np\n"
+            "from larc_jax import compilation\n"
+            "compilation.enable_compile_cache(%r)\n"
+            "f = jax.jit(lambda x: (x * 2.0 + 1.0,))\n"
+            "f.__name__ = 'doubled'\n"
+            "with compilation.CompileClock() as clock:\n"
+            "    (y,) = compilation.cached_kernel_call(f, (np.arange(4.0),))\n"
+            "assert np.asarray(y).tolist() == [1.0, 3.0, 5.0, 7.0]\n"
+            "print(clock.cache_hits)\n") % str(tmp_path / "c")
+
+    def kept(**env):
+        e = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        p = subprocess.run([sys.executable, "-c", code], env=dict(e, **env), capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0, p.stderr
+        return int(p.stdout.split()[-1]), len(list((tmp_path / "c").rglob("doubled-*.xlaexe")))
+
+    assert kept() == (0, 1)
+    assert kept() == (1, 1)
+    assert kept(XLA_FLAGS="--xla_cpu_enable_fast_math=false") == (0, 2)
+    assert kept(XLA_FLAGS="--xla_cpu_enable_fast_math=false") == (1, 2)

@@ -261,3 +261,35 @@ def test_dyadic_and_rebased_ends_bit_identical():
     assert np.array_equal(b[8:16], t_end[8:16]) and np.array_equal(a[:8], t_start[:8])
     ra_np, rb_np = rebase_ends(a_np, b_np, offset)
     assert np.array_equal(ra, ra_np) and np.array_equal(rb, rb_np)
+
+
+def test_warm_up_runs_small_batches_on_the_tree(robot, capsules, random_set):
+    """``warm_up_tree`` certifies with the tree and leaves the process running small batches on it:
+    the host frontier's leaves, evaluations and decisions (clearances to the last bits), and a
+    later one-trajectory ``certify`` gives the tree's own leaves bit for bit; a run that is not
+    LARC is refused and changes nothing; turned off again, small batches go back to the host."""
+    import larc_jax
+    from larc_jax.engine.tree_pool import small_batches_on_tree, uses_tree
+
+    trajs, scenes = random_set
+    batch, _ = _batch(robot, capsules, trajs[1:2], scenes[1:2])
+    host = larc_jax.certify(trajs[:1], scenes[:1], robot, capsules, enclosure="capsules")
+    assert not small_batches_on_tree() and not uses_tree(batch, 1)
+    with pytest.raises(larc_jax.LarcInputError, match="method 'fine'"):
+        larc_jax.warm_up_tree(trajs[:1], scenes[:1], robot, capsules, method="fine")
+    assert not small_batches_on_tree()
+    try:
+        warm = larc_jax.warm_up_tree(trajs[:1], scenes[:1], robot, capsules, enclosure="capsules")
+        assert small_batches_on_tree() and uses_tree(batch, 1)
+        assert np.array_equal(warm.certified, host.certified) and np.array_equal(warm.evaluations, host.evaluations)
+        assert np.array_equal(warm.frontier, host.frontier)
+        for field in ("traj", "t0", "t1", "stage", "certified"):
+            assert np.array_equal(getattr(warm.leaves, field), getattr(host.leaves, field)), field
+        np.testing.assert_allclose(warm.leaves.clearance_m, host.leaves.clearance_m, rtol=0, atol=1e-12)
+        one = larc_jax.certify(trajs[1:2], scenes[1:2], robot, capsules, enclosure="capsules")
+        tree = run_tree(batch, 1, MAX_DEPTH)
+        assert np.array_equal(one.leaves.clearance_m, tree.record.clearance_m, equal_nan=True)
+        assert np.array_equal(one.leaves.t0, tree.t0) and np.array_equal(one.frontier, tree.frontier)
+    finally:
+        assert small_batches_on_tree(False)
+    assert not uses_tree(batch, 1)

@@ -16,8 +16,9 @@ passes iff its recorded clearance exceeds its recorded guard:
   call; passing intervals become certified leaves; inconclusive ones are bisected into the next
   frontier (or recorded as inconclusive leaves at ``max_depth``). Frontier arrays are padded to
   a few bucket sizes (:mod:`larc_jax.engine.batch`) so a whole dataset compiles a handful of shapes.
-  A batch of :data:`~larc_jax.engine.tree_pool.TREE_FROM_TRAJECTORIES` or more that the device
-  tree runs (:func:`~larc_jax.engine.tree_pool.uses_tree`) runs as one jitted program instead
+  A batch of :data:`~larc_jax.engine.tree_pool.TREE_FROM_TRAJECTORIES` or more (any batch, after
+  :func:`~larc_jax.engine.warm_up.warm_up_tree`) that the device tree runs
+  (:func:`~larc_jax.engine.tree_pool.uses_tree`) runs as one jitted program instead
   (:mod:`larc_jax.engine.tree`): the same intervals, leaves and decisions; a leaf's clearance may
   differ in its last bits (XLA compiles the kernel inside the loop with its own fusions), far
   inside its guard.

@@ -31,7 +31,7 @@ from ..lazy_jax import jax
 from ..leaf.record import LeafRecord
 from .tree import TreeLeaves, run_tree, supports
 
-__all__ = ["run_tree_pool", "tree_workers", "uses_tree", "TREE_FROM_TRAJECTORIES"]
+__all__ = ["run_tree_pool", "tree_workers", "uses_tree", "small_batches_on_tree", "TREE_FROM_TRAJECTORIES"]
 
 TREE_FROM_TRAJECTORIES = 16
 """``certify``'s LARC runs the device tree on a batch of at least this many trajectories
@@ -43,13 +43,34 @@ warm one (2 CPU cores, the test suite running beside it), against 6.5 s and 1.9 
 frontier (README, "Cold start"). From 16 trajectories the tree's first call costs less than the
 host frontier's and its warm calls about the same (Stage B trajectories, capsules, 2 CPU cores,
 the test suite running beside it; first calls tree / host 14.5 / 18.6 s for 16, 15.6 / 24.0 s for
-32, 15.8 / 25.5 s for 64; warm, median of alternating rounds, host / tree 0.98, 0.91, 0.99)."""
+32, 15.8 / 25.5 s for 64; warm, median of alternating rounds, host / tree 0.98, 0.91, 0.99).
+A process that certifies one trajectory per call for a while runs small batches on the tree too
+after :func:`~larc_jax.engine.warm_up.warm_up_tree` (:func:`small_batches_on_tree`)."""
+
+
+_SMALL_ON_TREE = threading.Event()
+"""Set: this process runs small batches on the tree too (:func:`small_batches_on_tree`)."""
+
+
+def small_batches_on_tree(on: bool | None = None) -> bool:
+    """Whether ``certify``'s LARC runs a batch smaller than :data:`TREE_FROM_TRAJECTORIES` on the
+    device tree in this process (default: no, the host frontier; :func:`~larc_jax.engine.warm_up.warm_up_tree`
+    turns it on); with ``on``, set it. Returns the setting it found. Decisions, leaves and
+    evaluations do not depend on it (a clearance may differ in its last bits, far inside its
+    guard: :mod:`larc_jax.engine.tree`); only the time does: one trajectory per call, the tree
+    takes a fraction of the host frontier's warm time, after a first call that compiles it
+    (README, "One trajectory per call")."""
+    was = _SMALL_ON_TREE.is_set()
+    if on is not None:
+        (_SMALL_ON_TREE.set if on else _SMALL_ON_TREE.clear)()
+    return was
 
 
 def uses_tree(batch, n_traj: int) -> bool:
     """Whether ``certify``'s LARC runs ``batch`` (its first ``n_traj`` trajectories) on the device
-    tree: one it :func:`~larc_jax.engine.tree.supports`, of at least :data:`TREE_FROM_TRAJECTORIES`."""
-    return n_traj >= TREE_FROM_TRAJECTORIES and supports(batch)
+    tree: one it :func:`~larc_jax.engine.tree.supports`, of at least :data:`TREE_FROM_TRAJECTORIES`
+    (or of any size after :func:`small_batches_on_tree`)."""
+    return (n_traj >= TREE_FROM_TRAJECTORIES or _SMALL_ON_TREE.is_set()) and supports(batch)
 
 
 def tree_workers(batch, n_traj: int) -> int:
