@@ -19,9 +19,8 @@ which computes the cache key).
   (:func:`cached_kernel_call`; JAX's own cache still traces and lowers, which computes its key,
   and that costs about as much as loading). An executable is keyed by the SHA-256 of every source
   file of ``larc_jax`` and the versions of the packages it uses (:func:`library_hash`), the
-  backend, device and CPU features and the compiler's options (``XLA_FLAGS``, :func:`machine_key`),
-  the x64 mode, and the call's static arguments, structure and argument shapes, so a changed
-  library, JAX, machine, compiler option or argument never
+  backend, device and CPU features (:func:`machine_key`), the x64 mode, and the call's static
+  arguments, structure and argument shapes, so a changed library, JAX, machine or argument never
   meets a stale kernel; one that fails its first run is dropped and compiled again.
 * With the cache on, the loaders also keep what they build from the robot's files
   (:mod:`larc_jax.model.robot_cache`): the robot model, the URDF's parse and the hull parts,

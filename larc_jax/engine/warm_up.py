@@ -12,15 +12,6 @@ and from then on this process runs small batches on the tree as well
 trajectory length class, box count class or enclosure) compiles its program when first met, as
 the host frontier's kernels do. The certificate does not depend on it: the same intervals,
 leaves, evaluations and decisions (tested); a clearance may differ in its last bits.
-
-Memory: JAX keeps every compiled program in the process, and each compiled CPU program holds
-memory mappings: a one-trajectory tree about 1,400 with the capsule test and 2,400 with the
-cascade, the host frontier's kernels of one shape 700-900 and 1,700-2,400 (measured); a process that meets dozens of batch shapes
-on the tree can reach the system's ``vm.max_map_count`` (65,530), where XLA fails to compile
-("Cannot allocate memory"). Such a process drops what it compiled with :func:`jax.clear_caches`
-and :func:`~larc_jax.compilation.release_kernels` now and then (the bench does, between its
-sections); a planner with one robot and a few scenes meets a few shapes (Stage B's 160 trajectories
-in their 4 scenes: 8).
 """
 
 from __future__ import annotations
